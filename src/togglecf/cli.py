@@ -1,0 +1,186 @@
+"""``togglecf`` command line: ``trials``, ``evaluate``, ``tune``, ``download``."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import __version__
+from .data import DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
+from .evaluation import METRICS, group_means
+from .filters import FILTERS
+from .io import atomic_write_json, atomic_write_text
+from .runner import evaluate_trials, grid_search, parse_grid
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    try:
+        return args.func(args) or 0
+    except (DataError, DataNotFoundError, ValueError, KeyError, TypeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"togglecf {args.command}: error: {msg}", file=sys.stderr)
+        return 1
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="togglecf", description=__doc__)
+    p.add_argument("--version", action="version", version=f"togglecf {__version__}")
+    sub = p.add_subparsers(dest="command")
+
+    def data_args(sp):
+        sp.add_argument("--data", metavar="DIR", help="BROAD directory (trials.json + .hdf5/.mat); default: "
+                        "$TOGGLECF_DATA, else ../shared/data/broad next to the repo, else ./data/broad")
+        sp.add_argument("--trials", metavar="LIST", help="comma-separated trial numbers or names (default: all present)")
+
+    sp = sub.add_parser("trials", help="list the BROAD trials found and those missing")
+    data_args(sp)
+    sp.set_defaults(func=cmd_trials)
+
+    sp = sub.add_parser("evaluate", help="run a filter on BROAD trials and print BROAD's error table")
+    data_args(sp)
+    sp.add_argument("--filter", required=True, choices=sorted(FILTERS))
+    sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="filter setting, repeatable (default: the filter's documented defaults)")
+    sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
+    sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
+    sp.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
+    sp.set_defaults(func=cmd_evaluate)
+
+    sp = sub.add_parser("tune", help="grid search; report BROAD's TAGP (lowest mean total RMSE)")
+    data_args(sp)
+    sp.add_argument("--filter", required=True, choices=sorted(FILTERS))
+    sp.add_argument("--grid", action="append", required=True, metavar="NAME=START:STOP:STEP",
+                    help="parameter grid, repeatable; also NAME=a,b,c")
+    sp.add_argument("--6d", dest="six_d", action="store_true")
+    sp.add_argument("--out", metavar="DIR")
+    sp.add_argument("--jobs", type=int, default=None)
+    sp.set_defaults(func=cmd_tune)
+
+    sp = sub.add_parser("download", help="fetch BROAD (trial files + trials.json) from GitHub")
+    sp.add_argument("dest", nargs="?", default="data/broad", help="target directory (default: ./data/broad)")
+    sp.add_argument("--url", default=None, help="archive URL (default: BROAD's GitHub main branch zip)")
+    sp.add_argument("--format", choices=("hdf5", "mat", "both"), default="hdf5")
+    sp.set_defaults(func=cmd_download)
+    return p
+
+
+def _index(args) -> DatasetIndex:
+    index = DatasetIndex.from_dir(resolve_data_dir(args.data))
+    print(index.summary(), file=sys.stderr)
+    return index
+
+
+def cmd_trials(args):
+    index = _index(args)
+    for name in index.select(args.trials):
+        print(f"{name:45s} {index.available[name].name}")
+
+
+def _params(specs) -> dict:
+    grid = parse_grid(specs)
+    bad = [k for k, v in grid.items() if len(v) != 1]
+    if bad:
+        raise ValueError(f"--param {bad[0]} takes one value; use `togglecf tune --grid` for several")
+    return {k: v[0] for k, v in grid.items()}
+
+
+def _tables(results: dict, groups: dict):
+    per_trial = pd.DataFrame(
+        [{"trial": r.trial, **{m: r.errors[m] for m in METRICS}, "us_per_sample": r.us_per_sample,
+          "n_samples": r.n_samples} for r in results.values()]).set_index("trial")
+    per_group = pd.DataFrame.from_dict(group_means({n: r.errors for n, r in results.items()}, groups),
+                                       orient="index")
+    per_group.index.name = "group"
+    return per_trial, per_group
+
+
+def _print_tables(title, per_trial, per_group):
+    fmt = {c: "{:.3f}".format for c in per_trial.columns if c != "n_samples"}
+    print(f"\n{title}\nper trial (RMSE in degrees over the movement samples):")
+    print(per_trial.to_string(formatters=fmt))
+    print("\nper BROAD group (mean of the trials present; n_trials of n_listed):")
+    print(per_group.to_string(formatters={c: "{:.3f}".format for c in METRICS}))
+    print(f"\nmean over {len(per_trial)} trials: total {per_trial['total'].mean():.3f}°, heading "
+          f"{per_trial['heading'].mean():.3f}°, inclination {per_trial['inclination'].mean():.3f}°, "
+          f"{per_trial['us_per_sample'].median():.3f} µs/sample (median)")
+
+
+def _write(out, per_trial, per_group, meta):
+    out = Path(out)
+    atomic_write_text(out / "per_trial.csv", per_trial.to_csv(float_format="%.6f"))
+    atomic_write_text(out / "per_group.csv", per_group.to_csv(float_format="%.6f"))
+    atomic_write_json(out / "results.json", {**meta, "per_trial": per_trial.to_dict(orient="index"),
+                                             "per_group": per_group.to_dict(orient="index")})
+    print(f"\nwrote {out}/per_trial.csv, per_group.csv, results.json", file=sys.stderr)
+
+
+def _meta(args, index, names, **extra):
+    return {"togglecf_version": __version__, "filter": args.filter, "mode": "6D" if args.six_d else "9D",
+            "data_dir": str(index.root), "trials": names, "missing_trials": index.missing,
+            "created_unix": time.time(), **extra}
+
+
+def cmd_evaluate(args):
+    index = _index(args)
+    names = index.select(args.trials)
+    params = _params(args.param)
+    cls = FILTERS[args.filter]
+    cls(285.0, **params)  # validate the settings before starting workers
+    res = evaluate_trials(index, names, args.filter, [params], use_mag=not args.six_d, jobs=args.jobs)[0]
+    per_trial, per_group = _tables(res, index.groups)
+    settings = cls(285.0, **params).settings
+    _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group)
+    if args.out:
+        _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings)))
+
+
+def cmd_tune(args):
+    index = _index(args)
+    names = index.select(args.trials)
+    grid = parse_grid(args.grid)
+    for k in grid:
+        FILTERS[args.filter](285.0, **{k: grid[k][0]})  # fail early on a bad name
+    n = int(np.prod([len(v) for v in grid.values()]))
+    print(f"grid of {n} points x {len(names)} trials", file=sys.stderr)
+    t0 = time.time()
+    result = grid_search(index, names, args.filter, grid, use_mag=not args.six_d, jobs=args.jobs)
+    print(f"done in {time.time() - t0:.1f} s", file=sys.stderr)
+    per_trial = pd.DataFrame.from_dict(result.per_trial, orient="index")
+    per_trial.index.name = "trial"
+    per_group = pd.DataFrame.from_dict(group_means(result.per_trial, index.groups), orient="index")
+    per_group.index.name = "group"
+    curve = ", ".join(f"{v:g}: {e:.3f}" for v, e in zip(next(iter(grid.values())), np.atleast_1d(
+        result.mean_total if len(grid) == 1 else [])))
+    if curve:
+        print(f"\nmean total RMSE over the grid: {curve}")
+    print(f"\nTAGP of {args.filter}: {result.params} -> mean total RMSE "
+          f"{np.nanmin(result.mean_total):.3f}° over {len(names)} trials")
+    per_trial["us_per_sample"] = np.nan
+    print(per_group.to_string(formatters={c: "{:.3f}".format for c in METRICS}))
+    if args.out:
+        _write(args.out, per_trial, per_group, _meta(args, index, names, grid=grid, tagp=result.params,
+                                                     mean_total_grid=result.mean_total))
+
+
+def cmd_download(args):
+    from .download import download_broad
+
+    kwargs = {"fmt": args.format}
+    if args.url:
+        kwargs["url"] = args.url
+    dest = download_broad(args.dest, **kwargs)
+    print(f"BROAD is in {dest}; use it with --data {dest} (or TOGGLECF_DATA={dest})")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

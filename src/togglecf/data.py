@@ -1,0 +1,344 @@
+"""BROAD data layer: one typed ``Trial``, loaders for both BROAD formats, the dataset index.
+
+BROAD (Laidig et al., Data 6(7):72, 2021) ships each trial as HDF5 and as MATLAB v5 with
+the fields ``imu_gyr`` [rad/s], ``imu_acc`` [m/s²], ``imu_mag`` [µT], ``opt_quat``
+(sensor -> ENU, NaN rows where markers were lost), ``opt_pos`` [m], ``movement`` (bool)
+and ``sampling_rate`` [Hz]; ``trials.json`` lists the 39 trials and 16 groups.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
+    "resolve_data_dir", "BROAD_URL", "GRAVITY",
+]
+
+GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
+BROAD_URL = "https://github.com/dlaidig/broad"
+TRIAL_SUFFIXES = (".hdf5", ".mat")
+_IMU_FIELDS = ("imu_gyr", "imu_acc", "imu_mag")
+_MAX_PLAUSIBLE_GYRO = 35.0  # rad/s (~2000 °/s, the top of common gyro ranges); larger means °/s
+
+
+class DataError(ValueError):
+    """Bad input data. The message names the file, the field and the problem."""
+
+    def __init__(self, source, field_name: str | None, problem: str):
+        where = str(source) if source is not None else "<in memory>"
+        if field_name:
+            where += f": field '{field_name}'"
+        super().__init__(f"{where}: {problem}")
+        self.source, self.field, self.problem = source, field_name, problem
+
+
+class DataNotFoundError(FileNotFoundError):
+    """No BROAD data where it was looked for."""
+
+
+@dataclass(frozen=True, eq=False)
+class Trial:
+    """One recording: IMU signals plus (optionally) optical ground truth.
+
+    Attributes (N samples):
+        name: trial name, e.g. ``02_undisturbed_slow_rotation_B``.
+        fs: sampling rate [Hz].
+        gyr, acc, mag: ``(N, 3)`` float64 in rad/s, m/s², µT (sensor frame).
+        opt_quat: ``(N, 4)`` sensor -> ENU ground truth; NaN rows where unavailable.
+        opt_pos: ``(N, 3)`` [m] marker position, NaN rows where unavailable.
+        movement: ``(N,)`` bool, the samples errors are scored on.
+        groups: BROAD group names of this trial.
+        source: file it was read from, if any.
+    """
+
+    name: str
+    fs: float
+    gyr: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray
+    opt_quat: np.ndarray
+    opt_pos: np.ndarray
+    movement: np.ndarray
+    groups: tuple[str, ...] = ()
+    source: Path | None = None
+    check_units: bool = field(default=True, repr=False)
+
+    def __post_init__(self):
+        src = self.source if self.source is not None else self.name
+        if not (np.isscalar(self.fs) and np.isfinite(self.fs) and self.fs > 0):
+            raise DataError(src, "sampling_rate", f"must be a positive finite number in Hz, got {self.fs!r}")
+        object.__setattr__(self, "fs", float(self.fs))
+        n = None
+        for name, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("opt_quat", 4), ("opt_pos", 3)):
+            arr = np.ascontiguousarray(getattr(self, name), dtype=np.float64)
+            if arr.ndim != 2 or arr.shape[1] != width:
+                raise DataError(src, name, f"expected shape (N, {width}), got {arr.shape}")
+            n = arr.shape[0] if n is None else n
+            if arr.shape[0] != n:
+                raise DataError(src, name, f"has {arr.shape[0]} samples, gyr has {n}")
+            object.__setattr__(self, name, arr)
+        if n == 0:
+            raise DataError(src, "gyr", "trial has no samples")
+        mov = np.asarray(self.movement)
+        if mov.ndim == 2 and 1 in mov.shape:
+            mov = mov.reshape(-1)
+        if mov.shape != (n,):
+            raise DataError(src, "movement", f"expected shape ({n},), got {mov.shape}")
+        if mov.dtype != bool:
+            if not np.all(np.isin(mov, (0, 1))):
+                raise DataError(src, "movement", "must be boolean (0/1)")
+            mov = mov.astype(bool)
+        object.__setattr__(self, "movement", mov)
+        object.__setattr__(self, "groups", tuple(self.groups))
+        for name in ("gyr", "acc", "mag"):
+            bad = ~np.all(np.isfinite(getattr(self, name)), axis=1)
+            if bad.any():
+                raise DataError(src, name, f"{bad.sum()} non-finite samples (first at index {np.argmax(bad)})")
+        for name in ("opt_quat", "opt_pos"):
+            arr = getattr(self, name)
+            fin = np.isfinite(arr)
+            if np.any(fin.any(axis=1) & ~fin.all(axis=1)):
+                raise DataError(src, name, "rows must be all finite or all NaN")
+        q = self.opt_quat[np.isfinite(self.opt_quat[:, 0])]
+        if q.size and np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)) > 1e-3:
+            raise DataError(src, "opt_quat", "ground-truth quaternions are not unit norm")
+        if self.check_units:
+            self._check_units(src)
+
+    def _check_units(self, src):
+        acc_norm = float(np.median(np.linalg.norm(self.acc, axis=1)))
+        if 0.5 < acc_norm < 2.0:
+            raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g}: looks like g, expected m/s² (multiply by {GRAVITY})")
+        if not 4.0 < acc_norm < 20.0:
+            raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g} m/s² is implausible for an IMU on earth (expected ~{GRAVITY})")
+        gyr_p99 = float(np.percentile(np.linalg.norm(self.gyr, axis=1), 99))
+        if gyr_p99 > _MAX_PLAUSIBLE_GYRO:
+            raise DataError(src, "gyr", f"99th percentile |gyr| = {gyr_p99:.3g}: looks like °/s, expected rad/s")
+
+    @property
+    def n_samples(self) -> int:
+        return self.gyr.shape[0]
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds."""
+        return self.n_samples / self.fs
+
+    def slice(self, start: int, stop: int) -> "Trial":
+        """A sub-trial of samples ``start:stop`` (same name with a suffix)."""
+        sl = np.s_[start:stop]
+        return Trial(f"{self.name}[{start}:{stop}]", self.fs, self.gyr[sl], self.acc[sl], self.mag[sl],
+                     self.opt_quat[sl], self.opt_pos[sl], self.movement[sl], self.groups, self.source,
+                     check_units=False)
+
+
+# ------------------------------------------------------------------------------------------ loading
+
+def load_trial(path, groups=(), check_units: bool = True) -> Trial:
+    """Read one BROAD trial from ``.hdf5`` or ``.mat``.
+
+    Raises ``DataError`` naming the file and field for a missing dataset, wrong shape,
+    non-finite IMU samples, implausible units or an unreadable (corrupt/truncated) file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, None, "file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".hdf5" or suffix == ".h5":
+        fields, fs = _read_hdf5(path)
+    elif suffix == ".mat":
+        fields, fs = _read_mat(path)
+    else:
+        raise DataError(path, None, f"unknown trial format {suffix!r}; expected .hdf5 or .mat")
+    return Trial(name=path.stem, fs=fs, gyr=fields["imu_gyr"], acc=fields["imu_acc"], mag=fields["imu_mag"],
+                 opt_quat=fields["opt_quat"], opt_pos=fields["opt_pos"], movement=fields["movement"],
+                 groups=tuple(groups), source=path, check_units=check_units)
+
+
+_REQUIRED = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "opt_pos", "movement")
+
+
+def _read_hdf5(path: Path):
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in _REQUIRED if k not in f]
+            if missing:
+                raise DataError(path, missing[0], f"missing dataset (file has: {sorted(f.keys())})")
+            if "sampling_rate" in f.attrs:
+                fs = f.attrs["sampling_rate"]
+            elif "sampling_rate" in f:
+                fs = f["sampling_rate"][()]
+            else:
+                raise DataError(path, "sampling_rate", "missing file attribute")
+            fields = {k: f[k][()] for k in _REQUIRED}
+    except DataError:
+        raise
+    except OSError as exc:  # h5py raises OSError for corrupt or truncated files
+        raise DataError(path, None, f"cannot read HDF5 file (corrupt or truncated?): {exc}") from None
+    return fields, _scalar(path, fs)
+
+
+def _read_mat(path: Path):
+    import scipy.io
+
+    try:
+        mat = scipy.io.loadmat(path)
+    except Exception as exc:  # scipy raises ValueError/TypeError/OSError for damaged files
+        raise DataError(path, None, f"cannot read MAT file (corrupt or truncated?): {exc}") from None
+    missing = [k for k in _REQUIRED + ("sampling_rate",) if k not in mat]
+    if missing:
+        have = sorted(k for k in mat if not k.startswith("__"))
+        raise DataError(path, missing[0], f"missing variable (file has: {have})")
+    return {k: mat[k] for k in _REQUIRED}, _scalar(path, mat["sampling_rate"])
+
+
+def _scalar(path, value) -> float:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size != 1:
+        raise DataError(path, "sampling_rate", f"expected a scalar, got shape {arr.shape}")
+    return float(arr.reshape(()))
+
+
+# ------------------------------------------------------------------------------------ dataset index
+
+@dataclass
+class DatasetIndex:
+    """What a BROAD directory holds, checked against its ``trials.json``.
+
+    Attributes:
+        root: the directory.
+        trials: listed trial name -> info dict (``description``, ``groups``) for all listed trials.
+        groups: group name -> list of listed trial names, in ``trials.json`` order.
+        available: listed trial name -> file path, for the trials present (HDF5 preferred).
+        missing: listed trials with no file.
+        unlisted: trial files in the directory that ``trials.json`` does not list (not used).
+    """
+
+    root: Path
+    trials: dict
+    groups: dict
+    available: dict
+    missing: list
+    unlisted: list
+
+    @classmethod
+    def from_dir(cls, root) -> "DatasetIndex":
+        root = Path(root)
+        index_file = root / "trials.json"
+        if not index_file.is_file():
+            raise DataNotFoundError(f"{root}: no trials.json (BROAD's trial index); {_WHERE_TO_GET}")
+        try:
+            info = json.loads(index_file.read_text())
+            trials = dict(info["trials"])
+            group_names = [g["name"] for g in info["groups"]]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataError(index_file, None, f"not a BROAD trials.json: {exc}") from None
+        groups = {g: [t for t, ti in trials.items() if g in ti.get("groups", ())] for g in group_names}
+        files = {}
+        for p in sorted(root.iterdir()):
+            if p.suffix.lower() in TRIAL_SUFFIXES and p.is_file():
+                files.setdefault(p.stem, []).append(p)
+        available, missing = {}, []
+        for name in trials:
+            cands = sorted(files.get(name, []), key=lambda p: TRIAL_SUFFIXES.index(p.suffix.lower()))
+            if cands:
+                available[name] = cands[0]
+            else:
+                missing.append(name)
+        unlisted = [p for stem, ps in files.items() if stem not in trials for p in ps]
+        return cls(root, trials, groups, available, missing, unlisted)
+
+    def select(self, spec: str | list[str] | None = None) -> list[str]:
+        """Available trial names matching ``spec``: ``None`` for all, or comma-separated
+        numbers (``"02,07"``), full names or name prefixes. Unknown or unavailable ones raise."""
+        if spec is None or spec == "" or spec == "all":
+            return list(self.available)
+        items = spec.split(",") if isinstance(spec, str) else list(spec)
+        out = []
+        for item in (s.strip() for s in items):
+            if not item:
+                continue
+            pattern = re.compile(rf"^{re.escape(item.zfill(2) if item.isdigit() else item)}(_|$)")
+            hits = [t for t in self.trials if pattern.match(t) or t == item]
+            if not hits:
+                raise KeyError(f"trial {item!r} is not listed in {self.root / 'trials.json'}")
+            absent = [t for t in hits if t not in self.available]
+            if absent and len(absent) == len(hits):
+                raise KeyError(f"trial {absent[0]} is listed but not present in {self.root}")
+            out.extend(t for t in hits if t in self.available and t not in out)
+        return out
+
+    def trial_groups(self, name: str) -> tuple[str, ...]:
+        return tuple(self.trials[name].get("groups", ()))
+
+    def load(self, name: str, check_units: bool = True) -> Trial:
+        if name not in self.available:
+            raise KeyError(f"trial {name} is not present in {self.root}")
+        return load_trial(self.available[name], groups=self.trial_groups(name), check_units=check_units)
+
+    def summary(self) -> str:
+        lines = [f"BROAD at {self.root}: {len(self.available)} of {len(self.trials)} listed trials present"]
+        if self.missing:
+            lines.append(f"missing ({len(self.missing)}): " + ", ".join(self.missing))
+        if self.unlisted:
+            lines.append("not in trials.json, ignored: " + ", ".join(p.name for p in self.unlisted))
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- data-dir resolution
+
+ENV_DATA = "TOGGLECF_DATA"
+_WHERE_TO_GET = (
+    "put BROAD's trial files (.hdf5 or .mat) and trials.json in one directory and pass it with "
+    f"--data DIR or the environment variable {ENV_DATA}, or run `togglecf download ./data/broad` "
+    f"to fetch them from {BROAD_URL}"
+)
+
+
+def repo_root() -> Path | None:
+    """The source checkout this package runs from (editable install), if any."""
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "pyproject.toml").is_file() and (parent / "src" / "togglecf").is_dir():
+            return parent
+    return None
+
+
+def candidate_data_dirs(cli_dir=None) -> list[tuple[str, Path]]:
+    """Where BROAD is looked for, in order: ``--data`` > ``$TOGGLECF_DATA`` >
+    ``../shared/data/broad`` next to the repo > ``./data/broad``."""
+    cands = []
+    if cli_dir:
+        cands.append(("--data", Path(cli_dir)))
+    if os.environ.get(ENV_DATA):
+        cands.append((f"${ENV_DATA}", Path(os.environ[ENV_DATA])))
+    root = repo_root()
+    if root is not None:
+        cands.append(("next to the repo", root.parent / "shared" / "data" / "broad"))
+    cands.append(("next to the working directory", Path.cwd().parent / "shared" / "data" / "broad"))
+    cands.append(("default download location", Path.cwd() / "data" / "broad"))
+    return cands
+
+
+def resolve_data_dir(cli_dir=None) -> Path:
+    """The first candidate directory that holds ``trials.json``.
+
+    An explicit ``--data`` or ``$TOGGLECF_DATA`` that does not hold data is an error, not
+    a reason to silently fall through to another location.
+    """
+    tried = []
+    for how, path in candidate_data_dirs(cli_dir):
+        if (path / "trials.json").is_file():
+            return path.resolve()
+        tried.append(f"  {how}: {path}")
+        if how in ("--data", f"${ENV_DATA}"):
+            raise DataNotFoundError(f"no BROAD data in {path} (given by {how}): no trials.json there; {_WHERE_TO_GET}")
+    raise DataNotFoundError("BROAD data not found. Looked in:\n" + "\n".join(tried) + f"\nTo fix: {_WHERE_TO_GET}.")

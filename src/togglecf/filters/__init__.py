@@ -1,0 +1,24 @@
+"""Orientation filters, one module per algorithm; ``FILTERS`` maps CLI names to classes.
+
+All filters output sensor -> ENU quaternions ``[w, x, y, z]``; ``FilterOutput.in_frame``
+converts to NED or NWU.
+"""
+from .base import FilterOutput, FilterSettings, OrientationFilter, dt_from_timestamps
+from .complementary import CFSettings, ComplementaryFilter
+
+FILTERS = {
+    ComplementaryFilter.name: ComplementaryFilter,
+}
+
+
+def make_filter(name: str, fs: float, use_mag: bool = True, **settings) -> OrientationFilter:
+    """Construct a filter by its CLI name, e.g. ``make_filter('cf', 285.7, alpha=0.01)``."""
+    try:
+        cls = FILTERS[name]
+    except KeyError:
+        raise ValueError(f"unknown filter {name!r}; available: {', '.join(sorted(FILTERS))}") from None
+    return cls(fs, use_mag=use_mag, **settings)
+
+
+__all__ = ["FILTERS", "make_filter", "OrientationFilter", "FilterOutput", "FilterSettings", "dt_from_timestamps",
+           "ComplementaryFilter", "CFSettings"]

@@ -1,0 +1,304 @@
+"""What every orientation filter in togglecf shares (modelled on VQF's design).
+
+A filter is *settings* (a dataclass with documented defaults and units) + *state* (a flat
+float64 vector that ``get_state``/``set_state`` save and restore exactly) + *coefficients*
+derived from the settings and the sampling time ``Ts = 1/fs``.
+
+The maths lives in one numba function per filter, ``step(state, params, gyr, acc, mag, dt,
+diag)``, which advances ``state`` by one sample in place and writes diagnostics into
+``diag``. ``update`` calls it for one sample and ``update_batch`` runs it over arrays in the
+shared compiled loop ``run_batch``, so both give bit-identical results.
+
+State layout: ``state[0:4]`` the orientation quaternion (sensor -> ENU, ``[w,x,y,z]``),
+``state[4]`` 1.0 once initialised from the first valid acc(/mag) sample, ``state[5:]``
+filter specific. Parameter layout: ``params[0]`` 1.0 for 9D (magnetometer used),
+``params[1]`` the largest Δt [s] that is still integrated, ``params[2:]`` filter specific.
+
+Bad samples (documented policy, the same for all filters):
+
+* non-finite gyro, or Δt that is non-finite, <= 0 or > ``max_dt``: no gyro propagation;
+* non-finite or zero-norm accelerometer: no correction at all for that sample;
+* non-finite or zero-norm magnetometer (9D): no heading correction for that sample.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import ClassVar
+
+import numpy as np
+from numba import njit
+
+from ..quaternion import (from_acc_mag_scalar, from_rotvec_scalar, multiply_scalar, normalize_scalar,
+                          rotate_inverse_scalar, to_frame)
+
+__all__ = ["OrientationFilter", "FilterOutput", "run_batch", "dt_from_timestamps", "FilterSettings"]
+
+N_COMMON_STATE = 5
+N_COMMON_PARAMS = 2
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Settings shared by all filters.
+
+    Attributes:
+        max_dt: largest time step [s] that is still integrated; a longer gap (lost samples)
+            skips gyro propagation for that sample. Default 0.1 s.
+    """
+
+    max_dt: float = 0.1
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isfinite(v):
+                raise ValueError(f"{type(self).__name__}.{f.name} must be finite, got {v}")
+        if not self.max_dt > 0:
+            raise ValueError(f"max_dt must be > 0 s, got {self.max_dt}")
+
+
+@dataclass
+class FilterOutput:
+    """Result of ``update_batch``.
+
+    Attributes:
+        quat: ``(N, 4)`` orientation, sensor -> ENU.
+        diagnostics: name -> ``(N,)`` array (gain used, flags, bias estimates, ...).
+    """
+
+    quat: np.ndarray
+    diagnostics: dict
+
+    def in_frame(self, frame: str) -> np.ndarray:
+        """``quat`` expressed w.r.t. another earth frame (``'NED'``, ``'NWU'``, ``'ENU'``)."""
+        return to_frame(self.quat, frame)
+
+
+@njit(cache=False)
+def run_batch(step, state, params, gyr, acc, mag, dt, quat_out, diag_out):
+    """The one batch loop: ``step`` over all samples, recording the quaternion after each."""
+    for i in range(gyr.shape[0]):
+        step(state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i])
+        quat_out[i, 0] = state[0]
+        quat_out[i, 1] = state[1]
+        quat_out[i, 2] = state[2]
+        quat_out[i, 3] = state[3]
+
+
+def dt_from_timestamps(t) -> np.ndarray:
+    """Per-sample time steps [s] ``(N,)`` from timestamps [s]; the first sample gets the
+    median step (it is only used for the first propagation, which is skipped anyway)."""
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(f"timestamps: expected shape (N,) with N >= 2, got {t.shape}")
+    dt = np.diff(t, prepend=np.nan)
+    dt[0] = np.nanmedian(dt[1:])
+    return dt
+
+
+class OrientationFilter:
+    """Base class. Subclasses set ``name``, ``Settings``, ``state_names``,
+    ``diagnostic_names``, ``step`` and implement ``_coefficients``."""
+
+    name: ClassVar[str] = ""
+    Settings: ClassVar[type] = FilterSettings
+    #: names of ``state[5:]``
+    state_names: ClassVar[tuple[str, ...]] = ()
+    diagnostic_names: ClassVar[tuple[str, ...]] = ()
+    step: ClassVar = None  # numba dispatcher
+
+    def __init__(self, fs: float, settings=None, *, use_mag: bool = True, **overrides):
+        """Args:
+            fs: sampling rate [Hz] (required: there is no default rate).
+            settings: a ``Settings`` instance; keyword ``overrides`` replace its fields.
+            use_mag: 9D (True) or 6D (False, the magnetometer is ignored).
+        """
+        if fs is None or not (isinstance(fs, (int, float, np.floating)) and math.isfinite(fs) and fs > 0):
+            raise ValueError(f"{type(self).__name__}: fs must be a positive sampling rate in Hz, got {fs!r}")
+        self.fs = float(fs)
+        self.Ts = 1.0 / self.fs
+        settings = settings if settings is not None else self.Settings()
+        if not isinstance(settings, self.Settings):
+            raise TypeError(f"settings must be {self.Settings.__name__}, got {type(settings).__name__}")
+        known = {f.name for f in fields(self.Settings)}
+        unknown = set(overrides) - known
+        if unknown:
+            raise TypeError(f"{type(self).__name__}: unknown setting(s) {sorted(unknown)}; known: {sorted(known)}")
+        self.settings = replace(settings, **overrides)
+        self.use_mag = bool(use_mag)
+        common = np.array([1.0 if self.use_mag else 0.0, self.settings.max_dt])
+        self.params = np.ascontiguousarray(np.concatenate([common, self._coefficients()]), dtype=np.float64)
+        self.state = np.zeros(N_COMMON_STATE + len(self.state_names))
+        self.reset()
+        self._diag = np.zeros(len(self.diagnostic_names))
+
+    # -- to be provided by subclasses ------------------------------------------------------------
+    def _coefficients(self) -> np.ndarray:
+        """Filter-specific coefficients ``params[2:]`` from ``self.settings`` and ``self.Ts``."""
+        raise NotImplementedError
+
+    # -- state ---------------------------------------------------------------------------------
+    def reset(self):
+        """Forget everything: the next valid sample initialises the orientation."""
+        self.state[:] = 0.0
+        self.state[0] = 1.0
+
+    def get_state(self) -> np.ndarray:
+        """A copy of the full state vector (see ``state_dict`` for names)."""
+        return self.state.copy()
+
+    def set_state(self, state):
+        state = np.asarray(state, dtype=np.float64)
+        if state.shape != self.state.shape:
+            raise ValueError(f"{type(self).__name__}: state must have shape {self.state.shape}, got {state.shape}")
+        self.state[:] = state
+
+    def state_dict(self) -> dict:
+        """The state by name: ``quat``, ``initialized`` and the filter's own entries."""
+        d = {"quat": self.state[:4].copy(), "initialized": bool(self.state[4] > 0.5)}
+        d.update({n: float(self.state[N_COMMON_STATE + i]) for i, n in enumerate(self.state_names)})
+        return d
+
+    def set_quat(self, q):
+        """Set the orientation (sensor -> ENU) and mark the filter initialised."""
+        q = np.asarray(q, dtype=np.float64).reshape(4)
+        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+            raise ValueError(f"initial quaternion must be finite and non-zero, got {q}")
+        self.state[:4] = q / np.linalg.norm(q)
+        self.state[4] = 1.0
+
+    @property
+    def quat(self) -> np.ndarray:
+        """Current orientation ``(4,)``, sensor -> ENU."""
+        return self.state[:4].copy()
+
+    # -- running ---------------------------------------------------------------------------------
+    def update(self, gyr, acc, mag=None, dt=None) -> np.ndarray:
+        """One sample: gyr [rad/s], acc [m/s²], mag (any unit; ignored in 6D), each ``(3,)``;
+        ``dt`` [s] defaults to ``Ts``. Returns the new orientation ``(4,)``; the diagnostics
+        of this sample are in ``last_diagnostics``."""
+        g = _vec3(gyr, "gyr")
+        a = _vec3(acc, "acc")
+        m = _vec3(mag, "mag") if mag is not None else np.zeros(3)
+        if mag is None and self.use_mag:
+            raise ValueError(f"{type(self).__name__} is in 9D mode: pass mag, or construct with use_mag=False")
+        type(self).step(self.state, self.params, g, a, m, self.Ts if dt is None else float(dt), self._diag)
+        return self.quat
+
+    @property
+    def last_diagnostics(self) -> dict:
+        return dict(zip(self.diagnostic_names, self._diag.tolist()))
+
+    def update_batch(self, gyr, acc, mag=None, dt=None) -> FilterOutput:
+        """Arrays ``(N, 3)`` (see ``update``); ``dt`` a scalar or ``(N,)`` per-sample steps [s]
+        (``dt_from_timestamps`` makes them from timestamps). Continues from the current state."""
+        gyr = _series(gyr, "gyr")
+        n = gyr.shape[0]
+        acc = _series(acc, "acc", n)
+        if mag is None:
+            if self.use_mag:
+                raise ValueError(f"{type(self).__name__} is in 9D mode: pass mag, or construct with use_mag=False")
+            mag = np.zeros((n, 3))
+        else:
+            mag = _series(mag, "mag", n)
+        if dt is None:
+            dt = np.full(n, self.Ts)
+        else:
+            dt = np.asarray(dt, dtype=np.float64)
+            dt = np.full(n, float(dt)) if dt.ndim == 0 else np.ascontiguousarray(dt)
+            if dt.shape != (n,):
+                raise ValueError(f"dt: expected a scalar or shape ({n},), got {dt.shape}")
+        quat_out = np.empty((n, 4))
+        diag_out = np.zeros((n, len(self.diagnostic_names)))
+        run_batch(type(self).step, self.state, self.params, gyr, acc, mag, dt, quat_out, diag_out)
+        if n:
+            self._diag[:] = diag_out[-1]
+        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})
+
+    def __repr__(self):
+        return f"{type(self).__name__}(fs={self.fs:g}, {'9D' if self.use_mag else '6D'}, {self.settings})"
+
+
+def _vec3(v, name):
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape != (3,):
+        raise ValueError(f"{name}: expected shape (3,), got {v.shape}")
+    return v
+
+
+def _series(v, name, n=None):
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"{name}: expected shape (N, 3), got {v.shape}")
+    if n is not None and v.shape[0] != n:
+        raise ValueError(f"{name}: has {v.shape[0]} samples, gyr has {n}")
+    return v
+
+
+# ------------------------------------------------------------------------------------------
+# Numba building blocks shared by the filter kernels
+# ------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def vector_ok(v):
+    """True for a finite, non-zero 3-vector."""
+    n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    return math.isfinite(n2) and n2 > 1e-18
+
+
+@njit(cache=True, inline="always")
+def propagate_gyro(q, gyr, dt, max_dt):
+    """``q ⊗ exp(ω Δt / 2)``: strapdown integration of one gyro sample [rad/s] over Δt [s].
+
+    Returns ``(q_new, done)``; skipped (q unchanged) for non-finite ω or an invalid Δt.
+    """
+    if not (math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2])):
+        return q, False
+    if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
+        return q, False
+    dq = from_rotvec_scalar(gyr[0] * dt, gyr[1] * dt, gyr[2] * dt)
+    return normalize_scalar(multiply_scalar(q, dq)), True
+
+
+@njit(cache=True, inline="always")
+def acc_mag_quaternion(q_ref, acc, mag, mag_ok):
+    """Orientation measured by acc and mag (9D), or by acc and the *predicted* north direction
+    ``q_ref* ⊗ [0,1,0] ⊗ q_ref`` when the magnetometer is not used or not valid (6D: tilt
+    correction only, heading kept from ``q_ref``). Returned in the hemisphere of ``q_ref`` so
+    that LERP/SLERP between the two takes the short arc. Returns ``(ok, q)``."""
+    if mag_ok:
+        ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], mag[0], mag[1], mag[2])
+    else:
+        north = rotate_inverse_scalar(q_ref, (0.0, 1.0, 0.0))
+        ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], north[0], north[1], north[2])
+        if not ok:  # the sensor's north axis points along gravity: use east to fix heading instead
+            east = rotate_inverse_scalar(q_ref, (1.0, 0.0, 0.0))
+            # mag must be a vector with a north component: north = up x east, so pass it
+            nx = acc[1] * east[2] - acc[2] * east[1]
+            ny = acc[2] * east[0] - acc[0] * east[2]
+            nz = acc[0] * east[1] - acc[1] * east[0]
+            ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], nx, ny, nz)
+    if q[0] * q_ref[0] + q[1] * q_ref[1] + q[2] * q_ref[2] + q[3] * q_ref[3] < 0.0:
+        q = (-q[0], -q[1], -q[2], -q[3])
+    return ok, q
+
+
+@njit(cache=True, inline="always")
+def initialize_from_sample(state, acc, mag, mag_ok):
+    """Set ``state[0:4]`` from the first valid acc(/mag) sample (heading 0 in 6D). Returns ok."""
+    ok, q = acc_mag_quaternion((1.0, 0.0, 0.0, 0.0), acc, mag, mag_ok)
+    if ok:
+        state[0], state[1], state[2], state[3] = q
+        state[4] = 1.0
+    return ok
+
+
+@njit(cache=True, inline="always")
+def load_quat(state):
+    return (state[0], state[1], state[2], state[3])
+
+
+@njit(cache=True, inline="always")
+def store_quat(state, q):
+    state[0], state[1], state[2], state[3] = q

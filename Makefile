@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/togglecf evaluate --filter cf --out reports/cf
+	$(BIN)/python pipelines/main.py
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

@@ -234,9 +234,10 @@ def from_acc(acc) -> np.ndarray:
 
 
 def angle_between(p, q) -> np.ndarray:
-    """Rotation angle [rad] of ``p ⊗ q*``, in [0, π]."""
-    d = np.abs(np.sum(normalize(p) * normalize(q), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    """Rotation angle [rad] of ``p ⊗ q*``, in [0, π]. Uses atan2, accurate near 0 where
+    arccos of the dot product loses half the digits (~1e-8 rad floor)."""
+    r = multiply(normalize(p), conjugate(normalize(q)))
+    return 2.0 * np.arctan2(np.linalg.norm(r[..., 1:], axis=-1), np.abs(r[..., 0]))
 
 
 def to_frame(q_enu, frame: str) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from ..quaternion import (from_acc_mag_scalar, from_rotvec_scalar, multiply_scalar, normalize_scalar,
-                          rotate_inverse_scalar, to_frame)
+                          rotate_scalar, to_frame)
 
 __all__ = ["OrientationFilter", "FilterOutput", "run_batch", "dt_from_timestamps", "FilterSettings"]
 
@@ -263,22 +263,22 @@ def propagate_gyro(q, gyr, dt, max_dt):
 
 @njit(cache=True, inline="always")
 def acc_mag_quaternion(q_ref, acc, mag, mag_ok):
-    """Orientation measured by acc and mag (9D), or by acc and the *predicted* north direction
-    ``q_ref* ⊗ [0,1,0] ⊗ q_ref`` when the magnetometer is not used or not valid (6D: tilt
-    correction only, heading kept from ``q_ref``). Returned in the hemisphere of ``q_ref`` so
-    that LERP/SLERP between the two takes the short arc. Returns ``(ok, q)``."""
+    """Orientation measured by acc and mag (9D, ``from_acc_mag``), or, when the magnetometer
+    is not used or not valid, ``q_ref`` corrected by the shortest earth-frame rotation that
+    takes its predicted up direction onto the measured one (6D: a pure tilt correction with
+    zero vertical component, as Valenti et al.'s Δq_acc, eq. 25). Returned in the hemisphere
+    of ``q_ref`` so that LERP/SLERP between the two takes the short arc. Returns ``(ok, q)``."""
     if mag_ok:
         ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], mag[0], mag[1], mag[2])
     else:
-        north = rotate_inverse_scalar(q_ref, (0.0, 1.0, 0.0))
-        ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], north[0], north[1], north[2])
-        if not ok:  # the sensor's north axis points along gravity: use east to fix heading instead
-            east = rotate_inverse_scalar(q_ref, (1.0, 0.0, 0.0))
-            # mag must be a vector with a north component: north = up x east, so pass it
-            nx = acc[1] * east[2] - acc[2] * east[1]
-            ny = acc[2] * east[0] - acc[0] * east[2]
-            nz = acc[0] * east[1] - acc[1] * east[0]
-            ok, q = from_acc_mag_scalar(acc[0], acc[1], acc[2], nx, ny, nz)
+        na = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+        ok = na > 1e-9
+        g = rotate_scalar(q_ref, (acc[0] / na, acc[1] / na, acc[2] / na)) if ok else (0.0, 0.0, 1.0)
+        if 1.0 + g[2] > 1e-9:
+            dq = normalize_scalar((1.0 + g[2], g[1], -g[0], 0.0))  # rotation taking g onto +z
+        else:  # measured up is predicted down: any horizontal axis will do
+            dq = (0.0, 1.0, 0.0, 0.0)
+        q = multiply_scalar(dq, q_ref)
     if q[0] * q_ref[0] + q[1] * q_ref[1] + q[2] * q_ref[2] + q[3] * q_ref[3] < 0.0:
         q = (-q[0], -q[1], -q[2], -q[3])
     return ok, q

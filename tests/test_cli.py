@@ -1,0 +1,46 @@
+"""The `togglecf` command line on real and on synthetic data."""
+import json
+
+import pandas as pd
+import pytest
+
+from togglecf.cli import main
+from test_data import make_broad_dir
+
+
+def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
+    data = make_broad_dir(tmp_path / "b", ["01_a", "02_b"], ["01_a", "02_b", "03_c"])
+    out = tmp_path / "report"
+    assert main(["evaluate", "--filter", "cf", "--param", "alpha=0.01", "--data", str(data), "--out", str(out),
+                 "--jobs", "1"]) == 0
+    captured = capsys.readouterr()
+    assert "01_a" in captured.out and "per BROAD group" in captured.out
+    assert "missing (1): 03_c" in captured.err
+    per_trial = pd.read_csv(out / "per_trial.csv", index_col=0)
+    assert list(per_trial.index) == ["01_a", "02_b"]
+    assert {"total", "heading", "inclination", "roll", "pitch", "yaw", "us_per_sample"} <= set(per_trial.columns)
+    res = json.loads((out / "results.json").read_text())
+    assert res["params"] == {"alpha": 0.01} and res["missing_trials"] == ["03_c"]
+    assert pd.read_csv(out / "per_group.csv", index_col=0).loc["all_trials", "n_trials"] == 2
+
+
+def test_errors_are_one_clear_line(tmp_path, capsys):
+    assert main(["evaluate", "--filter", "cf", "--data", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no BROAD data in" in err and "togglecf download" in err and "Traceback" not in err
+    data = make_broad_dir(tmp_path / "b", ["01_a"], ["01_a"])
+    assert main(["evaluate", "--filter", "cf", "--param", "alpha=7", "--data", str(data)]) == 1
+    assert "alpha must be in [0, 1]" in capsys.readouterr().err
+    assert main(["evaluate", "--filter", "cf", "--trials", "09", "--data", str(data)]) == 1
+    assert "not listed" in capsys.readouterr().err
+
+
+@pytest.mark.broad
+def test_evaluate_and_tune_on_real_trials(broad_index, tmp_path, capsys):
+    args = ["--data", str(broad_index.root), "--trials", "02,07", "--jobs", "2"]
+    assert main(["evaluate", "--filter", "cf", *args, "--out", str(tmp_path / "e")]) == 0
+    per_trial = pd.read_csv(tmp_path / "e" / "per_trial.csv", index_col=0)
+    assert len(per_trial) == 2 and (per_trial["us_per_sample"] > 0).all()
+    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.0001,0.0003,0.01", *args]) == 0
+    out = capsys.readouterr().out
+    assert "TAGP of cf: {'alpha':" in out

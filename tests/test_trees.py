@@ -1,0 +1,56 @@
+"""Flattened XGBoost trees in numba equal xgboost's own predictions (margins and probabilities),
+including missing values and thresholds that sit exactly on float32 feature values."""
+import numpy as np
+import pytest
+import xgboost as xgb
+
+from togglecf.trees import FlatForest
+
+# xgboost sums leaves in float32; we sum in float64: differences are float32 rounding of the
+# margin (~1e-7 relative), far below the 1e-5 the export must meet.
+ATOL = 2e-6
+
+
+def data(rng, n=3000, d=6):
+    X = rng.standard_normal((n, d)).astype(np.float32)
+    X[rng.random((n, d)) < 0.1] = np.nan  # 10 % missing values
+    X[:, 5] = np.round(X[:, 5], 1)  # repeated values: thresholds land exactly on data points
+    return X
+
+
+@pytest.mark.parametrize("objective,n_class", [("binary:logistic", 0), ("multi:softprob", 4),
+                                               ("reg:squarederror", 0)])
+def test_flat_forest_equals_xgboost(rng, objective, n_class):
+    X = data(rng)
+    signal = np.nan_to_num(X[:, 0]) + 0.5 * np.nan_to_num(X[:, 1]) * np.nan_to_num(X[:, 5])
+    if objective == "binary:logistic":
+        y = (signal > 0.2).astype(int)
+    elif n_class:
+        y = np.digitize(signal, [-0.7, 0.0, 0.7])
+    else:
+        y = 3.0 * signal + 1.0
+    params = {"objective": objective, "max_depth": 5, "eta": 0.3, "seed": 0, "nthread": 1}
+    if n_class:
+        params["num_class"] = n_class
+    booster = xgb.train(params, xgb.DMatrix(X, label=y, missing=np.nan), 20)
+    forest = FlatForest.from_booster(booster)
+    X_test = data(np.random.default_rng(99), 2000)
+    dm = xgb.DMatrix(X_test, missing=np.nan)
+    margin_ref = booster.predict(dm, output_margin=True).reshape(len(X_test), -1)
+    np.testing.assert_allclose(forest.predict_margin(X_test), margin_ref, atol=ATOL, rtol=0)
+    np.testing.assert_allclose(forest.predict(X_test), booster.predict(dm), atol=ATOL, rtol=0)
+    # float64 input gives the same as float32 input: the comparison is done in float32
+    np.testing.assert_array_equal(forest.predict_margin(X_test.astype(np.float64)), forest.predict_margin(X_test))
+
+
+def test_sklearn_wrapper_and_errors(rng):
+    X = data(rng, 500)
+    clf = xgb.XGBClassifier(n_estimators=5, max_depth=3, random_state=0, n_jobs=1)
+    clf.fit(X, (np.nan_to_num(X[:, 0]) > 0).astype(int))
+    forest = FlatForest.from_booster(clf)
+    np.testing.assert_allclose(forest.predict(X), clf.predict_proba(X)[:, 1], atol=ATOL)
+    with pytest.raises(ValueError, match=r"expected shape \(n, 6\)"):
+        forest.predict(X[:, :5])
+    bad = xgb.train({"objective": "count:poisson"}, xgb.DMatrix(X, label=np.ones(500)), 2)
+    with pytest.raises(ValueError, match="not supported"):
+        FlatForest.from_booster(bad)

@@ -7,7 +7,7 @@ Per sample (``Ts`` or the given Δt):
 3. complementary blend (LERP) q    = normalize((1 − α) q_g + α q_am),  q_am on q_g's hemisphere
 
 α is the weight of the acc/mag measurement per sample; the time constant of the correction
-is about ``Ts / α`` (α = 0.0003 at 285.7 Hz: ~12 s).
+is about ``Ts / α`` (α = 0.00028 at 285.7 Hz: ~12.5 s).
 """
 from __future__ import annotations
 
@@ -26,13 +26,13 @@ __all__ = ["ComplementaryFilter", "CFSettings"]
 @dataclass(frozen=True)
 class CFSettings(FilterSettings):
     """Attributes:
-        alpha: weight of the acc/mag orientation per sample, in [0, 1]. Default 0.0003, the
-            TAGP of the grid 0.00002..0.05 over the 25 BROAD trials in shared/ (9D, 285.7 Hz):
-            mean total RMSE 10.42°. Small, because this IMU's gyro biases (0.2-0.5 °/s) and
+        alpha: weight of the acc/mag orientation per sample, in [0, 1]. Default 0.00028, the
+            TAGP over the 25 BROAD trials in shared/ (9D, 285.7 Hz; coarse grid 0.00002..0.05,
+            then 0.0002:0.0004:0.00002): mean total RMSE 10.421°. Small, because this IMU's gyro biases (0.2-0.5 °/s) and
             up to ~2 m/s² of linear acceleration pull in opposite directions.
     """
 
-    alpha: float = 0.0003
+    alpha: float = 0.00028
 
     def __post_init__(self):
         super().__post_init__()

@@ -190,9 +190,8 @@ class OrientationFilter:
     def last_diagnostics(self) -> dict:
         return dict(zip(self.diagnostic_names, self._diag.tolist()))
 
-    def update_batch(self, gyr, acc, mag=None, dt=None) -> FilterOutput:
-        """Arrays ``(N, 3)`` (see ``update``); ``dt`` a scalar or ``(N,)`` per-sample steps [s]
-        (``dt_from_timestamps`` makes them from timestamps). Continues from the current state."""
+    def _inputs(self, gyr, acc, mag, dt):
+        """Validated contiguous ``(N, 3)`` gyr, acc, mag (zeros in 6D) and ``(N,)`` dt."""
         gyr = _series(gyr, "gyr")
         n = gyr.shape[0]
         acc = _series(acc, "acc", n)
@@ -209,6 +208,13 @@ class OrientationFilter:
             dt = np.full(n, float(dt)) if dt.ndim == 0 else np.ascontiguousarray(dt)
             if dt.shape != (n,):
                 raise ValueError(f"dt: expected a scalar or shape ({n},), got {dt.shape}")
+        return gyr, acc, mag, dt
+
+    def update_batch(self, gyr, acc, mag=None, dt=None) -> FilterOutput:
+        """Arrays ``(N, 3)`` (see ``update``); ``dt`` a scalar or ``(N,)`` per-sample steps [s]
+        (``dt_from_timestamps`` makes them from timestamps). Continues from the current state."""
+        gyr, acc, mag, dt = self._inputs(gyr, acc, mag, dt)
+        n = gyr.shape[0]
         quat_out = np.empty((n, 4))
         diag_out = np.zeros((n, len(self.diagnostic_names)))
         run_batch(type(self).step, self.state, self.params, gyr, acc, mag, dt, quat_out, diag_out)

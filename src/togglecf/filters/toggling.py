@@ -1,0 +1,238 @@
+"""Toggling-gain complementary filter: gains switched by a predicted motion state.
+
+Per sample k, with predictions ``pred = [p_1..p_S, η̂_a(3), η̂_m(3)]`` (class probabilities
+of the motion state and the predicted acc/mag noise in the sensor frame):
+
+1. gyro bias at rest        b ← b + k_b · p_static · (ω − b)      when |ω − b| < ω_gate
+2. gyro propagation         Δq = exp((ω − b) Δt / 2),  q_g = q ⊗ Δq
+   the predicted vectors follow the sensor: v ← Δq* ⊗ v ⊗ Δq   (R_gᵀ v: earth-fixed
+   directions rotate opposite to the body)
+3. noise removal            a_d = a − η̂_a,  m_d = m − η̂_m
+4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
+   the class probabilities; a hard toggle when the probabilities are one-hot)
+5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m
+6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
+7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
+
+Why this geometric form: blending the *vectors* (step 5) gives tilt and heading their own
+gains (``from_acc_mag`` takes tilt from a_pred only and heading from m_pred's horizontal
+part), and the LERP of step 7 is the quaternion equivalent of projecting
+``(1 − γ) R_g + γ R_am`` back onto a rotation (both agree to first order in the angle
+between them; LERP stays exactly unit-norm after normalising). γ = 1 makes the orientation
+a pure function of the two gyro-propagated vectors; γ < 1 adds a second smoothing stage.
+
+Bad samples follow the policy of ``filters.base`` (non-finite gyro or Δt: no propagation;
+bad acc: no tilt update; bad mag: no heading update). Non-finite predictions count as
+"no prediction": the probabilities of the last valid hop are kept (caller's job) and η̂ = 0.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from .base import FilterSettings, OrientationFilter, acc_mag_quaternion, load_quat, store_quat, vector_ok
+from ..quaternion import from_rotvec_scalar, multiply_scalar, normalize_scalar, rotate_inverse_scalar
+
+__all__ = ["TogglingFilter", "TogglingSettings", "toggle_step", "N_PRED_NOISE"]
+
+N_PRED_NOISE = 6  # η̂_a (3) then η̂_m (3)
+_STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
+
+
+@dataclass(frozen=True)
+class TogglingSettings(FilterSettings):
+    """Attributes:
+        states: motion-state names, in the order of the classifier's classes.
+        alpha_acc: per-state weight of the denoised accelerometer per sample, in [0, 1].
+        alpha_mag: per-state weight of the denoised magnetometer per sample, in [0, 1].
+        gamma: output blend weight of the acc/mag orientation (1: vectors only), in (0, 1].
+        static_state: name of the state in which the gyro bias is learned.
+        bias_gain: per-sample low-pass gain of the bias estimate at p_static = 1 (0 disables).
+        bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
+    The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
+    on the training trials and stores them with the models.
+    """
+
+    states: tuple = ("static", "dynamic")
+    alpha_acc: tuple = (0.01, 0.0005)
+    alpha_mag: tuple = (0.002, 0.0005)
+    gamma: float = 1.0
+    static_state: str = "static"
+    bias_gain: float = 0.002
+    bias_gate: float = 0.05
+
+    def __post_init__(self):
+        super().__post_init__()
+        n = len(self.states)
+        object.__setattr__(self, "states", tuple(self.states))
+        object.__setattr__(self, "alpha_acc", tuple(float(a) for a in self.alpha_acc))
+        object.__setattr__(self, "alpha_mag", tuple(float(a) for a in self.alpha_mag))
+        if n < 1 or len(self.alpha_acc) != n or len(self.alpha_mag) != n:
+            raise ValueError(f"alpha_acc and alpha_mag need one gain per state {self.states}")
+        for name in ("alpha_acc", "alpha_mag"):
+            if not all(0.0 <= a <= 1.0 and math.isfinite(a) for a in getattr(self, name)):
+                raise ValueError(f"{name} gains must be in [0, 1], got {getattr(self, name)}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
+        if self.static_state not in self.states:
+            raise ValueError(f"static_state {self.static_state!r} is not one of {self.states}")
+        if not (0.0 <= self.bias_gain <= 1.0 and self.bias_gate >= 0.0):
+            raise ValueError("bias_gain must be in [0, 1] and bias_gate >= 0")
+
+
+@njit(cache=True, inline="always")
+def _gains(params, pred, ns):
+    """Probability-weighted gains (step 4); a non-finite probability row counts as the static
+    state's gains being off: the lowest gain of each sensor is used (the cautious choice)."""
+    aa = 0.0
+    am = 0.0
+    total = 0.0
+    for s in range(ns):
+        p = pred[s]
+        if not (p >= 0.0):
+            aa = params[3]
+            am = params[3 + ns]
+            for t in range(ns):
+                aa = min(aa, params[3 + t])
+                am = min(am, params[3 + ns + t])
+            return aa, am, 0.0
+        aa += p * params[3 + s]
+        am += p * params[3 + ns + s]
+        total += p
+    if total > 0.0:
+        aa /= total
+        am /= total
+    return aa, am, total
+
+
+@njit(cache=True)
+def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
+    """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm]."""
+    use_mag, max_dt, ns = params[0] > 0.5, params[1], int(params[2])
+    o = 3 + 2 * ns
+    gamma, bias_gain, static_idx, bias_gate = params[o], params[o + 1], int(params[o + 2]), params[o + 3]
+    eta_ok = True
+    for j in range(N_PRED_NOISE):
+        if not math.isfinite(pred[ns + j]):
+            eta_ok = False
+    if eta_ok:  # step 3
+        a_d = (acc[0] - pred[ns], acc[1] - pred[ns + 1], acc[2] - pred[ns + 2])
+        m_d = (mag[0] - pred[ns + 3], mag[1] - pred[ns + 4], mag[2] - pred[ns + 5])
+    else:
+        a_d = (acc[0], acc[1], acc[2])
+        m_d = (mag[0], mag[1], mag[2])
+    acc_ok = vector_ok(a_d)
+    mag_ok = use_mag and vector_ok(m_d)
+    alpha_a, alpha_m, _ = _gains(params, pred, ns)
+    p_static = pred[static_idx] if pred[static_idx] >= 0.0 else 0.0
+    diag[0] = 0.0
+    diag[1] = 0.0
+    diag[2] = p_static
+    if state[4] < 0.5:  # initialise orientation and vectors from the first valid sample
+        ok, q0 = acc_mag_quaternion((1.0, 0.0, 0.0, 0.0), a_d, m_d, mag_ok) if acc_ok else (False, (1.0, 0.0, 0.0, 0.0))
+        if ok:
+            store_quat(state, q0)
+            state[4] = 1.0
+            state[8], state[9], state[10] = a_d
+            north = rotate_inverse_scalar(q0, (0.0, 1.0, 0.0))  # in 6D m_pred is unused
+            state[11], state[12], state[13] = m_d if mag_ok else north
+        return
+    q = load_quat(state)
+    b = (state[5], state[6], state[7])
+    a_pred = (state[8], state[9], state[10])
+    m_pred = (state[11], state[12], state[13])
+    g_ok = math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2])
+    if g_ok and bias_gain > 0.0 and p_static > 0.0:  # step 1
+        rx, ry, rz = gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2]
+        if rx * rx + ry * ry + rz * rz < bias_gate * bias_gate:
+            k = bias_gain * p_static
+            b = (b[0] + k * rx, b[1] + k * ry, b[2] + k * rz)
+    if g_ok and math.isfinite(dt) and dt > 0.0 and dt <= max_dt:  # step 2
+        dq = from_rotvec_scalar((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
+        q = normalize_scalar(multiply_scalar(q, dq))
+        a_pred = rotate_inverse_scalar(dq, a_pred)
+        m_pred = rotate_inverse_scalar(dq, m_pred)
+    if acc_ok:  # step 5
+        a_pred = ((1.0 - alpha_a) * a_pred[0] + alpha_a * a_d[0], (1.0 - alpha_a) * a_pred[1] + alpha_a * a_d[1],
+                  (1.0 - alpha_a) * a_pred[2] + alpha_a * a_d[2])
+        diag[0] = alpha_a
+    if mag_ok:
+        m_pred = ((1.0 - alpha_m) * m_pred[0] + alpha_m * m_d[0], (1.0 - alpha_m) * m_pred[1] + alpha_m * m_d[1],
+                  (1.0 - alpha_m) * m_pred[2] + alpha_m * m_d[2])
+        diag[1] = alpha_m
+    ok, q_am = acc_mag_quaternion(q, a_pred, m_pred, use_mag)  # step 6
+    if ok:  # step 7
+        c = 1.0 - gamma
+        q = normalize_scalar((c * q[0] + gamma * q_am[0], c * q[1] + gamma * q_am[1],
+                              c * q[2] + gamma * q_am[2], c * q[3] + gamma * q_am[3]))
+    store_quat(state, q)
+    state[5], state[6], state[7] = b
+    state[8], state[9], state[10] = a_pred
+    state[11], state[12], state[13] = m_pred
+    diag[3] = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+
+
+@njit(cache=False)
+def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, diag_out):
+    """``run_batch`` with one prediction row per sample."""
+    for i in range(gyr.shape[0]):
+        step(state, params, gyr[i], acc[i], mag[i], dt[i], pred[i], diag_out[i])
+        quat_out[i, 0] = state[0]
+        quat_out[i, 1] = state[1]
+        quat_out[i, 2] = state[2]
+        quat_out[i, 3] = state[3]
+
+
+class TogglingFilter(OrientationFilter):
+    """The toggling-gain CF driven by per-sample predictions.
+
+    ``update_batch(gyr, acc, mag, predictions=P)`` with ``P (N, S + 6)``: state
+    probabilities then η̂_a, η̂_m (sensor frame, m/s² and µT). ``predictions=None`` means
+    "no model": the first state with zero noise (useful only for tests).
+    """
+
+    name = "toggling"
+    Settings = TogglingSettings
+    state_names = _STATE
+    diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm")
+
+    def _coefficients(self) -> np.ndarray:
+        s = self.settings
+        return np.array([len(s.states), *s.alpha_acc, *s.alpha_mag, s.gamma, s.bias_gain,
+                         s.states.index(s.static_state), s.bias_gate], dtype=np.float64)
+
+    @property
+    def n_predictions(self) -> int:
+        return len(self.settings.states) + N_PRED_NOISE
+
+    def _default_pred(self, n):
+        pred = np.zeros((n, self.n_predictions))
+        pred[:, 0] = 1.0
+        return pred
+
+    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
+        pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
+        if pred.shape != (self.n_predictions,):
+            raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
+        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
+        toggle_step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], pred, self._diag)
+        return self.quat
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
+        from .base import FilterOutput
+
+        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
+        n = g.shape[0]
+        pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
+        if pred.shape != (n, self.n_predictions):
+            raise ValueError(f"predictions: expected shape ({n}, {self.n_predictions}), got {pred.shape}")
+        quat_out = np.empty((n, 4))
+        diag_out = np.zeros((n, len(self.diagnostic_names)))
+        run_batch_predicted(toggle_step, self.state, self.params, g, a, m, dt_arr, pred, quat_out, diag_out)
+        if n:
+            self._diag[:] = diag_out[-1]
+        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})

@@ -1,0 +1,128 @@
+"""The toggling CF's core driven by given predictions: exactness on simulated data, the
+toggle itself, bias learning at rest, noise removal, batch/sample identity, bad inputs."""
+import numpy as np
+import pytest
+
+from togglecf import quaternion as quat
+from togglecf.filters.toggling import TogglingFilter
+from togglecf.simulate import axis_sweep_trajectory, imu_from_orientation, static_trajectory
+
+FS = 285.7142857142857
+
+
+def one_hot(n, state, n_states=2, eta_a=(0, 0, 0), eta_m=(0, 0, 0)):
+    p = np.zeros((n, n_states + 6))
+    p[:, state] = 1.0
+    p[:, n_states:n_states + 3] = eta_a
+    p[:, n_states + 3:] = eta_m
+    return p
+
+
+def err_deg(q, ref):
+    return np.degrees(quat.angle_between(q, ref))
+
+
+def test_noiseless_motion_is_tracked_exactly():
+    q_true = axis_sweep_trajectory([1, 2, 0.5], 120, FS, 10.0)
+    tr = imu_from_orientation(q_true, FS)
+    out = TogglingFilter(FS, bias_gain=0.0).update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(len(q_true), 1))
+    # exact gyro + exact vectors: propagated vectors equal measured ones, corrections are null
+    assert err_deg(out.quat, q_true).max() < 1e-6
+
+
+def test_gain_follows_predicted_state():
+    n = 2000
+    tr = imu_from_orientation(static_trajectory([5, 5, 5], n), FS)
+    pred = one_hot(n, 0)
+    pred[1000:] = one_hot(1000, 1)
+    pred[500:600, :2] = 0.5  # probabilities in between give the expected gain
+    f = TogglingFilter(FS, alpha_acc=(0.02, 0.001), alpha_mag=(0.01, 0.0005))
+    d = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred).diagnostics
+    assert np.all(d["alpha_acc"][1:500] == 0.02) and np.all(d["alpha_acc"][1000:] == 0.001)
+    np.testing.assert_allclose(d["alpha_acc"][500:600], 0.5 * (0.02 + 0.001), rtol=1e-12)
+    np.testing.assert_allclose(d["alpha_mag"][500:600], 0.5 * (0.01 + 0.0005), rtol=1e-12)
+
+
+def test_bias_learned_at_rest_and_used_in_motion():
+    bias = np.array([0.004, -0.006, 0.008])  # 0.2-0.5 °/s, like BROAD's IMU
+    n_rest, n_move = int(20 * FS), int(10 * FS)
+    rest = static_trajectory([10, -5, 30], n_rest)
+    move = axis_sweep_trajectory([0, 0, 1], 90, FS, 10.0, start=rest[-1])
+    q_true = np.vstack([rest, move])
+    tr = imu_from_orientation(q_true, FS, gyro_bias=bias, gyro_noise=0.002, seed=1)
+    pred = one_hot(len(q_true), 1)
+    pred[:n_rest] = one_hot(n_rest, 0)
+    f = TogglingFilter(FS, alpha_acc=(0.01, 0.0), alpha_mag=(0.01, 0.0), bias_gain=0.002)
+    out = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred)
+    b = f.state_dict()
+    # 20 s at a time constant of 1.75 s: the low-pass has converged to the bias within its noise
+    np.testing.assert_allclose([b["bias_x"], b["bias_y"], b["bias_z"]], bias, atol=3e-4)
+    # in motion with zero gains only gyro integration is left: the residual bias drifts < 0.1°/10 s
+    assert err_deg(out.quat[-1], q_true[-1]) < 0.3
+    f0 = TogglingFilter(FS, alpha_acc=(0.01, 0.0), alpha_mag=(0.01, 0.0), bias_gain=0.0)
+    out0 = f0.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred)
+    assert err_deg(out0.quat[-1], q_true[-1]) > 3.0  # without the bias: ~0.6°/s over 10 s
+
+
+def test_predicted_noise_is_removed():
+    n = int(20 * FS)
+    q_true = static_trajectory([0, 30, 0], n)
+    lin = np.tile([2.0, 0.0, 0.0], (n, 1))  # constant 2 m/s² east: a tilt error of ~11.5° if kept
+    tr = imu_from_orientation(q_true, FS, lin_acc_earth=lin)
+    eta_a = quat.rotate(quat.conjugate(q_true[0]), [2.0, 0.0, 0.0])  # the regressor's perfect answer
+    f = TogglingFilter(FS, alpha_acc=(0.01, 0.01))
+    f.set_quat(q_true[0])
+    with_noise = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(n, 0)).quat
+    f = TogglingFilter(FS, alpha_acc=(0.01, 0.01))
+    denoised = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(n, 0, eta_a=eta_a)).quat
+    assert err_deg(with_noise[-1], q_true[-1]) > 10.0
+    assert err_deg(denoised[-1], q_true[-1]) < 1e-6
+
+
+@pytest.mark.broad
+def test_update_equals_batch_and_state_splits_exactly(broad_trial):
+    n = 3000
+    g, a, m = broad_trial.gyr[:n], broad_trial.acc[:n], broad_trial.mag[:n]
+    rng = np.random.default_rng(0)
+    p = rng.random((n, 3))
+    pred = np.hstack([p / p.sum(1, keepdims=True), 0.05 * rng.standard_normal((n, 6))])
+    kw = dict(states=("rest", "rot", "trans"), alpha_acc=(0.01, 0.002, 0.0005), alpha_mag=(0.003, 0.001, 0.0),
+              static_state="rest", gamma=0.5)
+    for use_mag in (True, False):
+        mm = m if use_mag else None
+        full = TogglingFilter(broad_trial.fs, use_mag=use_mag, **kw).update_batch(g, a, mm, predictions=pred)
+        f = TogglingFilter(broad_trial.fs, use_mag=use_mag, **kw)
+        single = np.array([f.update(g[i], a[i], None if mm is None else mm[i], prediction=pred[i]) for i in range(n)])
+        assert np.array_equal(single, full.quat)
+        f1 = TogglingFilter(broad_trial.fs, use_mag=use_mag, **kw)
+        first = f1.update_batch(g[:777], a[:777], None if mm is None else mm[:777], predictions=pred[:777])
+        f2 = TogglingFilter(broad_trial.fs, use_mag=use_mag, **kw)
+        f2.set_state(f1.get_state())
+        second = f2.update_batch(g[777:], a[777:], None if mm is None else mm[777:], predictions=pred[777:])
+        assert np.array_equal(np.vstack([first.quat, second.quat]), full.quat)
+
+
+def test_bad_inputs_and_predictions_do_not_poison():
+    n = 3000
+    q_true = axis_sweep_trajectory([1, 0, 1], 60, FS, n / FS)
+    tr = imu_from_orientation(q_true, FS)
+    g, a, m = tr.gyr.copy(), tr.acc.copy(), tr.mag.copy()
+    pred = one_hot(n, 1)
+    g[100:110] = np.nan
+    a[110:120] = 0.0
+    m[120:130] = np.inf
+    pred[130:140] = np.nan  # the model had no answer
+    pred[140:150, 2:] = np.inf
+    out = TogglingFilter(FS).update_batch(g, a, m, predictions=pred)
+    assert np.all(np.isfinite(out.quat))
+    np.testing.assert_allclose(np.linalg.norm(out.quat, axis=1), 1.0, atol=1e-12)
+    assert np.all(out.diagnostics["alpha_acc"][130:140] == 0.0005)  # lowest gain when unsure
+
+
+def test_settings_validation():
+    with pytest.raises(ValueError, match="one gain per state"):
+        TogglingFilter(FS, alpha_acc=(0.1,))
+    with pytest.raises(ValueError, match="static_state"):
+        TogglingFilter(FS, static_state="rest")
+    with pytest.raises(ValueError, match=r"predictions: expected shape \(10, 8\)"):
+        TogglingFilter(FS).update_batch(np.zeros((10, 3)), np.ones((10, 3)), np.ones((10, 3)), predictions=np.zeros((10, 7)))

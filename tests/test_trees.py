@@ -54,3 +54,20 @@ def test_sklearn_wrapper_and_errors(rng):
     bad = xgb.train({"objective": "count:poisson"}, xgb.DMatrix(X, label=np.ones(500)), 2)
     with pytest.raises(ValueError, match="not supported"):
         FlatForest.from_booster(bad)
+
+
+def test_concatenated_forest_gives_each_models_margins(rng):
+    X = data(rng, 1000)
+    y = (np.nan_to_num(X[:, 0]) > 0).astype(int) + (np.nan_to_num(X[:, 1]) > 0)
+    clf = xgb.train({"objective": "multi:softprob", "num_class": 3, "max_depth": 4, "seed": 0}, xgb.DMatrix(X, label=y), 8)
+    reg = xgb.train({"objective": "reg:squarederror", "max_depth": 3, "seed": 0, "base_score": 0.0},
+                    xgb.DMatrix(X, label=np.nan_to_num(X[:, 2])), 6)
+    a, b = FlatForest.from_booster(clf), FlatForest.from_booster(reg)
+    both = FlatForest.concatenate([a, b, b])
+    m = both.predict_margin(X)
+    assert m.shape == (1000, 5) and both.n_nodes == a.n_nodes + 2 * b.n_nodes
+    np.testing.assert_array_equal(m[:, :3], a.predict_margin(X))
+    np.testing.assert_array_equal(m[:, 3], b.predict_margin(X)[:, 0])
+    np.testing.assert_array_equal(m[:, 4], b.predict_margin(X)[:, 0])
+    with pytest.raises(ValueError, match="share their number of features"):
+        FlatForest.concatenate([a, FlatForest.from_booster(xgb.train({}, xgb.DMatrix(X[:, :3], label=y), 1))])

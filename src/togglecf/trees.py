@@ -107,13 +107,42 @@ class FlatForest:
         forest.base_margin = forest._base_margin_from(booster)
         return forest
 
+    @classmethod
+    def concatenate(cls, forests) -> "FlatForest":
+        """One forest whose outputs are those of ``forests`` one after another (e.g. class
+        margins, then η_a x/y/z, then η_m x/y/z): a single traversal loop serves all models.
+        The link is ``'identity'``: callers apply each block's own link to its margins."""
+        forests = list(forests)
+        if not forests or len({f.n_features for f in forests}) != 1:
+            raise ValueError("forests to concatenate must exist and share their number of features")
+        parts, node_off, out_off = {k: [] for k in ("feature", "threshold", "left", "right", "default_left", "value",
+                                                    "roots", "tree_group")}, 0, 0
+        for f in forests:
+            inner = f.left >= 0
+            parts["feature"].append(f.feature)
+            parts["threshold"].append(f.threshold)
+            parts["left"].append(np.where(inner, f.left + node_off, -1))
+            parts["right"].append(np.where(inner, f.right + node_off, -1))
+            parts["default_left"].append(f.default_left)
+            parts["value"].append(f.value)
+            parts["roots"].append(f.roots + node_off)
+            parts["tree_group"].append(f.tree_group + out_off)
+            node_off += f.n_nodes
+            out_off += f.n_outputs
+        dtypes = {"feature": np.int32, "threshold": np.float32, "left": np.int32, "right": np.int32,
+                  "default_left": np.bool_, "value": np.float32, "roots": np.int32, "tree_group": np.int32}
+        arrays = {k: np.ascontiguousarray(np.concatenate(v).astype(dtypes[k])) for k, v in parts.items()}
+        return cls(**arrays, base_margin=np.concatenate([f.base_margin for f in forests]), link="identity",
+                   n_features=forests[0].n_features)
+
     def _base_margin_from(self, booster) -> np.ndarray:
         """The booster's margin for an all-missing row minus our leaf sum for it (version-proof)."""
         import xgboost as xgb
 
         row = np.full((1, self.n_features), np.nan, np.float32)
         ours = self.predict_margin(row, base=np.zeros(self.n_outputs))[0]
-        theirs = np.asarray(booster.predict(xgb.DMatrix(row, missing=np.nan), output_margin=True), np.float64)
+        dm = xgb.DMatrix(row, missing=np.nan, feature_names=booster.feature_names)  # named models insist on names
+        theirs = np.asarray(booster.predict(dm, output_margin=True), np.float64)
         return theirs.reshape(-1)[: self.n_outputs] - ours
 
     def arrays(self):

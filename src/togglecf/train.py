@@ -1,0 +1,343 @@
+"""``togglecf train``: targets -> RANSAC cleaning -> features -> cross-validation by trial -> final fit.
+
+Cross-validation uses ``GroupKFold`` with the trial as group: every window of a test trial is
+left out of that fold's training. Training windows are those whose end sample has valid
+targets (and, with ``ransac = true``, is a RANSAC inlier); test windows are always the valid
+RANSAC inliers of the test trials, so switching RANSAC changes the training data only and its
+effect can be compared on the same test set.
+
+Baselines: the majority class of the fold's training labels (classifier) and zero noise
+(regressors). The final models are fitted on all selected trials and saved with
+``models.save_bundle``.
+"""
+from __future__ import annotations
+
+import hashlib
+import platform
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .data import DatasetIndex, resolve_data_dir
+from .features import FeatureSettings, feature_schema, trial_features, window_length
+from .io import atomic_write_text
+from .labels import LabelSettings, make_targets, state_names
+from .models import MotionClassifier, NoiseRegressor, classification_metrics, regression_metrics, save_bundle
+from .progress import progress
+
+__all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make_folds", "cross_validate",
+           "run_training", "add_train_parser", "cmd_train", "format_cv_table"]
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "pipelines" / "configs" / "default.toml"
+_RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all"}
+_SECTIONS = ("run", "labels", "features", "classifier", "regressor")
+
+
+def load_config(source=None) -> dict:
+    """Config dict from a TOML path (or an already parsed dict), defaults filled in, unknown keys refused."""
+    if source is None:
+        source = DEFAULT_CONFIG
+    if isinstance(source, dict):
+        raw = {k: dict(v) for k, v in source.items()}
+    else:
+        with open(source, "rb") as f:
+            raw = tomllib.load(f)
+    bad = sorted(set(raw) - set(_SECTIONS))
+    if bad:
+        raise ValueError(f"config: unknown section(s) {bad}; expected {list(_SECTIONS)}")
+    cfg = {s: dict(raw.get(s, {})) for s in _SECTIONS}
+    unknown = sorted(set(cfg["run"]) - set(_RUN_DEFAULTS))
+    if unknown:
+        raise ValueError(f"config [run]: unknown key(s) {unknown}; known: {sorted(_RUN_DEFAULTS)}")
+    cfg["run"] = {**_RUN_DEFAULTS, **cfg["run"]}
+    LabelSettings.from_dict({**cfg["labels"], "seed": cfg["run"]["seed"]})  # validate early
+    FeatureSettings.from_dict(cfg["features"])
+    for sec, cls in (("classifier", MotionClassifier), ("regressor", NoiseRegressor)):
+        allowed = set(cls._param_names()) - {"nthread", "seed", "target"}
+        unknown = sorted(set(cfg[sec]) - allowed)
+        if unknown:
+            raise ValueError(f"config [{sec}]: unknown key(s) {unknown}; known: {sorted(allowed)}")
+    return cfg
+
+
+@dataclass
+class WindowData:
+    """One row per window (window ending at sample ``end`` of trial ``trials[group]``)."""
+
+    X: np.ndarray
+    state: np.ndarray
+    eta_acc: np.ndarray
+    eta_mag: np.ndarray
+    train_mask: np.ndarray
+    eval_mask: np.ndarray
+    group: np.ndarray
+    end: np.ndarray
+    trials: list
+    window_samples: int
+    fs: float
+    per_trial: dict = field(default_factory=dict)
+
+
+def _file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def build_dataset(index: DatasetIndex, names, label_settings: LabelSettings, feature_settings: FeatureSettings,
+                  ransac: bool = True) -> WindowData:
+    """Targets, RANSAC masks and features of every trial in ``names``."""
+    parts = []
+    per_trial = {}
+    fs0 = None
+    for g, name in enumerate(progress(names, desc="targets+features", unit="trial")):
+        trial = index.load(name)
+        if fs0 is None:
+            fs0 = trial.fs
+        elif abs(trial.fs - fs0) > 1e-6 * fs0:
+            raise ValueError(f"{name}: sampling rate {trial.fs} Hz differs from {fs0} Hz of the other trials")
+        t = make_targets(trial, label_settings)
+        X, ends = trial_features(trial, feature_settings)
+        valid = t.valid[ends]
+        inl = t.inlier[ends]
+        parts.append(dict(X=X, state=t.state[ends], eta_acc=t.eta_acc[ends], eta_mag=t.eta_mag[ends],
+                          train_mask=valid & inl if ransac else valid, eval_mask=valid & inl,
+                          group=np.full(len(ends), g), end=ends))
+        counts = np.bincount(t.state[t.valid], minlength=len(t.state_names))
+        per_trial[name] = {"n_samples": trial.n_samples, "valid_fraction": float(t.valid.mean()),
+                           "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
+                           "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
+                           "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
+                           "sha256": _file_sha256(index.available[name])}
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return WindowData(**cat, trials=list(names), window_samples=window_length(fs0, feature_settings.window_s),
+                      fs=fs0, per_trial=per_trial)
+
+
+def make_folds(group: np.ndarray, n_trials: int, n_splits: int):
+    """``[(train_trials, test_trials), ...]`` from ``GroupKFold`` on the trial of every window."""
+    from sklearn.model_selection import GroupKFold
+
+    k = max(2, min(int(n_splits), n_trials))
+    if n_trials < 2:
+        raise ValueError("cross-validation by trial needs at least 2 trials")
+    dummy = np.zeros(len(group))
+    folds = []
+    for tr, te in GroupKFold(n_splits=k).split(dummy, groups=group):
+        folds.append((np.unique(group[tr]), np.unique(group[te])))
+    return folds
+
+
+def _models(cfg):
+    run = cfg["run"]
+    common = {"nthread": int(run["nthread"]), "seed": int(run["seed"])}
+    clf = MotionClassifier(**cfg["classifier"], **common)
+    regs = {t: NoiseRegressor(target=t, **cfg["regressor"], **common) for t in ("acc", "mag")}
+    return clf, regs
+
+
+def _fit_all(cfg, data: WindowData, rows, schema, class_names):
+    clf, regs = _models(cfg)
+    clf.fit(data.X[rows], data.state[rows], schema, class_names)
+    regs["acc"].fit(data.X[rows], data.eta_acc[rows], schema)
+    regs["mag"].fit(data.X[rows], data.eta_mag[rows], schema)
+    return clf, regs
+
+
+def _evaluate(clf, regs, data: WindowData, train_rows, test_rows, schema, n_classes):
+    X = data.X[test_rows]
+    proba = clf.predict_proba(X, schema)
+    y = data.state[test_rows]
+    majority = int(np.argmax(np.bincount(data.state[train_rows], minlength=n_classes)))
+    const = np.zeros((len(y), n_classes))
+    const[:, majority] = 1.0
+    res = {"classifier": classification_metrics(y, proba, n_classes),
+           "majority": {**classification_metrics(y, const, n_classes), "class": majority}}
+    preds = {"proba": proba}
+    for t in ("acc", "mag"):
+        yt = getattr(data, f"eta_{t}")[test_rows]
+        yp = regs[t].predict(X, schema)
+        res[t] = regression_metrics(yt, yp)
+        res[f"{t}_zero"] = regression_metrics(yt, np.zeros_like(yt))
+        preds[t] = yp
+    return res, preds
+
+
+def cross_validate(cfg, data: WindowData, schema, class_names):
+    """Per-fold and pooled CV metrics; ``folds`` records each fold's train/test trial names."""
+    n_classes = len(class_names)
+    folds = make_folds(data.group, len(data.trials), cfg["run"]["cv_folds"])
+    out = {"folds": []}
+    pooled = {"y": [], "proba": [], "const": [], "acc": [], "acc_t": [], "mag": [], "mag_t": []}
+    for i, (train_g, test_g) in enumerate(progress(folds, desc="cross-validation", unit="fold")):
+        train_rows = np.flatnonzero(np.isin(data.group, train_g) & data.train_mask)
+        test_rows = np.flatnonzero(np.isin(data.group, test_g) & data.eval_mask)
+        t0 = time.perf_counter()
+        clf, regs = _fit_all(cfg, data, train_rows, schema, class_names)
+        res, preds = _evaluate(clf, regs, data, train_rows, test_rows, schema, n_classes)
+        res.update(fold=i, test_trials=[data.trials[g] for g in test_g],
+                   train_trials=[data.trials[g] for g in train_g], n_train=len(train_rows),
+                   n_test=len(test_rows), seconds=time.perf_counter() - t0)
+        out["folds"].append(res)
+        pooled["y"].append(data.state[test_rows])
+        pooled["proba"].append(preds["proba"])
+        c = np.zeros_like(preds["proba"])
+        c[:, res["majority"]["class"]] = 1.0
+        pooled["const"].append(c)
+        for t in ("acc", "mag"):
+            pooled[t].append(preds[t])
+            pooled[f"{t}_t"].append(getattr(data, f"eta_{t}")[test_rows])
+    P = {k: np.concatenate(v) for k, v in pooled.items()}
+    out["overall"] = {"classifier": classification_metrics(P["y"], P["proba"], n_classes),
+                      "majority": classification_metrics(P["y"], P["const"], n_classes)}
+    for t in ("acc", "mag"):
+        out["overall"][t] = regression_metrics(P[f"{t}_t"], P[t])
+        out["overall"][f"{t}_zero"] = regression_metrics(P[f"{t}_t"], np.zeros_like(P[f"{t}_t"]))
+    return out
+
+
+def _short(name: str) -> str:
+    return name.split("_")[0]
+
+
+def format_cv_table(cv: dict, class_names) -> str:
+    head = (f"{'fold':>7} {'test trials':<22} {'n_test':>7} | {'balacc':>6} {'(maj)':>6} {'F1':>6} {'(maj)':>6} "
+            f"{'AUC':>6} {'(maj)':>6} | {'accRMSE':>7} {'(zero)':>7} {'R2':>6} {'(zero)':>7} | "
+            f"{'magRMSE':>7} {'(zero)':>7} {'R2':>6} {'(zero)':>7}")
+    lines = [head, "-" * len(head)]
+
+    def row(label, trials, r, n):
+        c, m = r["classifier"], r["majority"]
+        a, az, g, gz = r["acc"], r["acc_zero"], r["mag"], r["mag_zero"]
+        return (f"{label:>7} {trials:<22} {n:>7d} | {c['balanced_accuracy']:6.3f} {m['balanced_accuracy']:6.3f} "
+                f"{c['f1_macro']:6.3f} {m['f1_macro']:6.3f} {c['roc_auc']:6.3f} {m['roc_auc']:6.3f} | "
+                f"{a['rmse']:7.3f} {az['rmse']:7.3f} {a['r2']:6.3f} {az['r2']:7.3f} | "
+                f"{g['rmse']:7.3f} {gz['rmse']:7.3f} {g['r2']:6.3f} {gz['r2']:7.3f}")
+
+    for f in cv["folds"]:
+        lines.append(row(str(f["fold"]), ",".join(_short(t) for t in f["test_trials"])[:22], f, f["n_test"]))
+    lines.append("-" * len(head))
+    lines.append(row("overall", "pooled over folds", cv["overall"], cv["overall"]["classifier"]["n"]))
+    conf = np.array(cv["overall"]["classifier"]["confusion"])
+    lines.append("\npooled confusion matrix (rows true, columns predicted): " + ", ".join(class_names))
+    w = max(len(c) for c in class_names)
+    for name, r in zip(class_names, conf):
+        lines.append(f"  {name:>{w}} " + " ".join(f"{v:8d}" for v in r))
+    lines.append("acc/mag: RMSE [m/s², µT] pooled over axes; R² = 1 − SSE/SST; (zero) = predicting no noise; "
+                 "(maj) = majority class of the fold's training set")
+    return "\n".join(lines)
+
+
+def _importances(clf, regs, schema) -> str:
+    cols = {"classifier": clf.booster_}
+    for t, r in regs.items():
+        for ax, b in zip("xyz", r.boosters_):
+            cols[f"{t}_{ax}"] = b
+    table = {}
+    for c, b in cols.items():
+        gain = b.get_score(importance_type="total_gain")
+        total = sum(gain.values()) or 1.0
+        table[c] = {n: gain.get(n, 0.0) / total for n in schema.names}
+    lines = ["feature," + ",".join(cols)]
+    order = sorted(schema.names, key=lambda n: -sum(table[c][n] for c in cols))
+    for n in order:
+        lines.append(n + "," + ",".join(f"{table[c][n]:.6f}" for c in cols))
+    return "\n".join(lines) + "\n"
+
+
+def _versions() -> dict:
+    import scipy
+    import sklearn
+    import xgboost
+
+    return {"python": platform.python_version(), "togglecf": __version__, "numpy": np.__version__,
+            "scipy": scipy.__version__, "xgboost": xgboost.__version__, "scikit-learn": sklearn.__version__}
+
+
+def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = True, verbose: bool = True) -> dict:
+    """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out`` and ``timing``."""
+    t_start = time.perf_counter()
+    cfg = load_config(config)
+    run = cfg["run"]
+    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    spec = trials if trials is not None else (None if run["trials"] in ("all", "", None) else run["trials"])
+    names = index.select(spec)
+    if len(names) < 2:
+        raise ValueError(f"training needs at least 2 trials, got {names}")
+    label_settings = LabelSettings.from_dict({**cfg["labels"], "seed": run["seed"]})
+    feature_settings = FeatureSettings.from_dict(cfg["features"])
+    schema = feature_schema(feature_settings)
+    class_names = state_names(label_settings.label_set)
+    out_dir = Path(out) if out else Path("models") / run["name"]
+    timing = {}
+
+    def log(msg):
+        if verbose:
+            print(msg, file=sys.stderr, flush=True)
+
+    log(f"togglecf train: {len(names)} trials from {index.root} -> {out_dir}")
+    t0 = time.perf_counter()
+    data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
+    timing["dataset_s"] = time.perf_counter() - t0
+    log(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
+        f"in {timing['dataset_s']:.1f} s")
+    result = {"out": str(out_dir), "timing": timing}
+    if cv:
+        t0 = time.perf_counter()
+        result["cv"] = cross_validate(cfg, data, schema, class_names)
+        timing["cv_s"] = time.perf_counter() - t0
+        if verbose:
+            print(format_cv_table(result["cv"], class_names))
+    t0 = time.perf_counter()
+    rows = np.flatnonzero(data.train_mask)
+    clf, regs = _fit_all(cfg, data, rows, schema, class_names)
+    timing["final_fit_s"] = time.perf_counter() - t0
+    timing["total_s"] = time.perf_counter() - t_start
+    metadata = {
+        "run_name": run["name"], "created_by": "togglecf train", "seed": run["seed"],
+        "sampling_rate": data.fs, "window": {"window_s": feature_settings.window_s, "hop_s": feature_settings.hop_s,
+                                             "window_samples": data.window_samples,
+                                             "hop_samples": int(max(1, round(feature_settings.hop_s * data.fs)))},
+        "label_settings": label_settings.to_dict(), "ransac": label_settings.ransac,
+        "training_trials": names, "n_training_windows": int(len(rows)), "data_dir": str(index.root),
+        "data_files": {n: {"file": p["file"], "sha256": p["sha256"]} for n, p in data.per_trial.items()},
+        "per_trial": {n: {k: v for k, v in p.items() if k not in ("file", "sha256")} for n, p in data.per_trial.items()},
+        "config": cfg, "cv": result.get("cv"), "timing": timing, "versions": _versions(),
+    }
+    save_bundle(out_dir, clf, regs, metadata)
+    atomic_write_text(out_dir / "feature_importances.csv", _importances(clf, regs, schema))
+    if cv:
+        atomic_write_text(out_dir / "cv_table.txt", format_cv_table(result["cv"], class_names) + "\n")
+    timing["total_s"] = time.perf_counter() - t_start
+    log(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "
+        f"CV {timing.get('cv_s', 0.0):.1f} s, final fit {timing['final_fit_s']:.1f} s)")
+    result["metadata"] = metadata
+    result["data"] = data
+    return result
+
+
+def add_train_parser(subparsers):
+    """Register ``togglecf train`` on an argparse subparsers object."""
+    sp = subparsers.add_parser("train", help="learn the motion-state classifier and noise regressors "
+                               "(CV by trial, then a final fit) and save them under models/NAME")
+    sp.add_argument("--config", default=str(DEFAULT_CONFIG), metavar="TOML",
+                    help="pipeline settings (default: pipelines/configs/default.toml)")
+    sp.add_argument("--data", metavar="DIR", help="BROAD directory (default: $TOGGLECF_DATA, else "
+                    "../shared/data/broad next to the repo, else ./data/broad)")
+    sp.add_argument("--trials", metavar="LIST", help="comma-separated trial numbers or names (default: config)")
+    sp.add_argument("--out", metavar="DIR", help="model directory (default: models/<run.name>)")
+    sp.add_argument("--no-cv", dest="cv", action="store_false", help="skip cross-validation (final fit only)")
+    sp.set_defaults(func=cmd_train)
+    return sp
+
+
+def cmd_train(args):
+    run_training(args.config, data_dir=args.data, trials=args.trials, out=args.out, cv=args.cv)
+    return 0

@@ -1,0 +1,115 @@
+"""Feature extraction: causality, equality with a slow per-window loop, schema checks."""
+import math
+
+import numpy as np
+import pytest
+
+from togglecf.data import GRAVITY
+from togglecf.features import (LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, SchemaMismatchError,
+                               compute_features, feature_schema, hop_length, window_end_indices,
+                               window_length)
+
+FS = 100.0
+
+
+def _signals(rng, n=2000):
+    gyr = rng.standard_normal((n, 3))
+    acc = rng.standard_normal((n, 3)) + [0.0, 0.0, GRAVITY]
+    mag = 3 * rng.standard_normal((n, 3)) + [0.0, 20.0, -40.0]
+    return gyr, acc, mag
+
+
+def _slow_features(gyr, acc, mag, fs, s: FeatureSettings, ends):
+    """Straight per-sample recursion + per-window loop, the definitions of the module docstring."""
+    n = gyr.shape[0]
+    L = window_length(fs, s.window_s)
+    lam_r = math.exp(-1.0 / (s.ref_tau_s * fs))
+    lam_p = math.exp(-1.0 / (s.lp_tau_s * fs))
+    ch = {k: np.zeros(n) for k in set(WINDOW_CHANNELS) | set(LAST_CHANNELS) | {"gyr_energy"}}
+    r = d = p = None
+    for k in range(n):
+        a, m, w = acc[k], mag[k], gyr[k]
+        an, mn = math.sqrt(a @ a), math.sqrt(m @ m)
+        dip = math.asin(max(-1.0, min(1.0, -(a @ m) / (an * mn))))
+        if k == 0:
+            r, d, p = mn, dip, a.copy()
+        for i, ax in enumerate("xyz"):
+            ch[f"gyr_{ax}"][k], ch[f"acc_{ax}"][k], ch[f"mag_{ax}"][k] = w[i], a[i], m[i]
+            ch[f"acc_hp_{ax}"][k] = a[i] - p[i]
+        ch["gyr_norm"][k] = math.sqrt(w @ w)
+        ch["gyr_energy"][k] = w @ w
+        ch["acc_norm_dev"][k] = an - GRAVITY
+        ch["mag_norm"][k] = mn
+        ch["jerk"][k] = 0.0 if k == 0 else math.sqrt(np.sum((a - acc[k - 1]) ** 2)) * fs
+        ch["mag_norm_dev"][k] = mn - r
+        ch["dip_dev"][k] = dip - d
+        r = lam_r * r + (1 - lam_r) * mn  # the references seen by sample k+1
+        d = lam_r * d + (1 - lam_r) * dip
+        p = lam_p * p + (1 - lam_p) * a
+    rows = []
+    for k in ends:
+        row = []
+        for c in WINDOW_CHANNELS:
+            x = ch[c][k - L + 1:k + 1]
+            row += [x.mean(), x.std(), x.min(), x.max()]
+        row.append(ch["gyr_energy"][k - L + 1:k + 1].mean())
+        row += [ch[c][k] for c in LAST_CHANNELS]
+        rows.append(row)
+    return np.array(rows)
+
+
+def test_window_end_indices():
+    # window 0.2 s at 100 Hz = 20 samples, hop 0.05 s = 5 samples: first full window ends at 19
+    ends = window_end_indices(100, FS, 0.05, 0.2)
+    assert ends[0] == 19 and np.all(np.diff(ends) == 5) and ends[-1] <= 99
+    assert np.array_equal(window_end_indices(20, FS, 0.05), [4, 9, 14, 19])
+    assert window_length(FS, 0.2) == 20 and hop_length(FS, 0.05) == 5
+
+
+def test_vectorised_equals_slow_loop(rng):
+    gyr, acc, mag = _signals(rng, 600)
+    s = FeatureSettings(window_s=0.17, hop_s=0.03, ref_tau_s=0.5, lp_tau_s=0.2)  # odd window, short taus
+    X, ends = compute_features(gyr, acc, mag, FS, s)
+    ref = _slow_features(gyr, acc, mag, FS, s, ends)
+    assert X.shape == ref.shape == (len(ends), len(feature_schema(s).names))
+    # cumulative sums vs direct sums and lfilter vs the Python recursion differ by rounding only
+    np.testing.assert_allclose(X, ref, rtol=1e-9, atol=1e-9)
+
+
+def test_every_sample_hop(rng):
+    gyr, acc, mag = _signals(rng, 300)
+    s = FeatureSettings(window_s=0.1, hop_s=0.001)  # hop rounds to 1 sample
+    X, ends = compute_features(gyr, acc, mag, FS, s)
+    assert np.array_equal(ends, np.arange(9, 300))
+    np.testing.assert_allclose(X, _slow_features(gyr, acc, mag, FS, s, ends), rtol=1e-9, atol=1e-9)
+
+
+def test_causal(rng):
+    """Changing samples after k never changes the features of windows ending at or before k."""
+    gyr, acc, mag = _signals(rng, 2000)
+    s = FeatureSettings()
+    X, ends = compute_features(gyr, acc, mag, FS, s)
+    for k in (300, 1234, 1999):
+        g2, a2, m2 = gyr.copy(), acc.copy(), mag.copy()
+        g2[k + 1:] *= -3.0
+        a2[k + 1:] += 50.0
+        m2[k + 1:] = rng.standard_normal(m2[k + 1:].shape) * 100
+        X2, ends2 = compute_features(g2, a2, m2, FS, s)
+        past = ends <= k
+        np.testing.assert_array_equal(X2[past], X[past])  # exactly: only earlier samples enter
+        if (~past).any():
+            assert not np.allclose(X2[~past], X[~past])
+
+
+def test_schema_hash_and_check():
+    a = feature_schema(FeatureSettings())
+    b = feature_schema(FeatureSettings(window_s=0.3))
+    assert a.hash == feature_schema(FeatureSettings()).hash and a.hash != b.hash
+    a.check(feature_schema(FeatureSettings()))
+    with pytest.raises(SchemaMismatchError, match="window_s=0.3 vs 0.2"):
+        a.check(b)
+    reordered = type(a)(a.version, a.names[::-1], a.settings)
+    with pytest.raises(SchemaMismatchError, match="order differs"):
+        a.check(reordered)
+    with pytest.raises(ValueError, match="window_s"):
+        FeatureSettings(window_s=0.0)

@@ -1,0 +1,78 @@
+"""The toggling CF with its models compiled into the loop equals the same filter driven by
+xgboost's own predictions; update == update_batch; the full state (window included) splits."""
+import numpy as np
+import pytest
+
+from togglecf import quaternion as quat
+from togglecf.features import compute_features
+from togglecf.filters.toggling import CompiledModels, ModelTogglingFilter, TogglingFilter
+from togglecf.models import load_bundle
+
+pytestmark = pytest.mark.broad
+
+GAINS = dict(alpha_acc=(0.02, 0.002, 0.0005, 0.0002), alpha_mag=(0.005, 0.001, 0.0003, 0.0001), gamma=0.7)
+
+
+@pytest.fixture(scope="module")
+def bundle(broad_index, tmp_path_factory):
+    from togglecf.train import load_config, run_training
+
+    cfg = load_config()
+    cfg["classifier"].update(n_estimators=15, max_depth=4)
+    cfg["regressor"].update(n_estimators=10, max_depth=4)
+    out = tmp_path_factory.mktemp("models") / "tiny"
+    run_training(cfg, data_dir=broad_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
+    return load_bundle(out)
+
+
+@pytest.fixture(scope="module")
+def segment(broad_index):
+    t = broad_index.load("05_undisturbed_slow_rotation_with_breaks_B")  # not a training trial
+    return t.slice(8000, 20000)
+
+
+def xgboost_predictions(bundle, t):
+    """Per-sample predictions from xgboost on the vectorised features, held from each window end."""
+    X, ends = compute_features(t.gyr, t.acc, t.mag, t.fs, CompiledModels.from_bundle(bundle).feature_settings)
+    p = np.hstack([bundle.classifier.predict_proba(X, bundle.schema), bundle.regressors["acc"].predict(X, bundle.schema),
+                   bundle.regressors["mag"].predict(X, bundle.schema)])
+    pred = np.full((t.n_samples, p.shape[1]), np.nan)
+    idx = np.searchsorted(ends, np.arange(t.n_samples), side="right") - 1  # last window end <= sample
+    pred[idx >= 0] = p[idx[idx >= 0]]
+    return pred
+
+
+def test_compiled_models_equal_xgboost_driven_filter(bundle, segment):
+    t = segment
+    models = CompiledModels.from_bundle(bundle)
+    inloop = ModelTogglingFilter(t.fs, models=models, **GAINS).update_batch(t.gyr, t.acc, t.mag)
+    ref_pred = xgboost_predictions(bundle, t)
+    names = [f"p_{s}" for s in models.class_names] + [f"eta_{s}_{a}" for s in ("acc", "mag") for a in "xyz"]
+    got = np.column_stack([inloop.diagnostics[n] for n in names])
+    # float32 leaf sums in xgboost vs float64 here, features rounded differently: ~1e-6 at most
+    np.testing.assert_allclose(got, ref_pred, atol=1e-5, equal_nan=True)
+    driven = TogglingFilter(t.fs, states=models.class_names, static_state=models.class_names[0], **GAINS)
+    ref = driven.update_batch(t.gyr, t.acc, t.mag, predictions=ref_pred)
+    assert np.degrees(quat.angle_between(inloop.quat, ref.quat)).max() < 1e-4
+
+
+def test_update_equals_batch_and_full_state_splits(bundle, segment):
+    t = segment.slice(0, 2500)
+    models = CompiledModels.from_bundle(bundle)
+    full = ModelTogglingFilter(t.fs, models=models, **GAINS).update_batch(t.gyr, t.acc, t.mag).quat
+    f = ModelTogglingFilter(t.fs, models=models, **GAINS)
+    single = np.array([f.update(t.gyr[i], t.acc[i], t.mag[i]) for i in range(t.n_samples)])
+    assert np.array_equal(single, full)
+    f1 = ModelTogglingFilter(t.fs, models=models, **GAINS)
+    a = f1.update_batch(t.gyr[:1001], t.acc[:1001], t.mag[:1001]).quat  # split inside a hop
+    f2 = ModelTogglingFilter(t.fs, models=models, **GAINS)
+    f2.set_state(f1.get_state())
+    b = f2.update_batch(t.gyr[1001:], t.acc[1001:], t.mag[1001:]).quat
+    assert np.array_equal(np.vstack([a, b]), full)
+
+
+def test_states_must_match_model_classes(bundle):
+    models = CompiledModels.from_bundle(bundle)
+    with pytest.raises(ValueError, match="differ from the model's classes"):
+        ModelTogglingFilter(285.7, models=models, states=("a", "b"), alpha_acc=(0.1, 0.1), alpha_mag=(0.1, 0.1),
+                            static_state="a")

@@ -9,7 +9,8 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    directions rotate opposite to the body)
 3. noise removal            a_d = a − η̂_a,  m_d = m − η̂_m
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
-   the class probabilities; a hard toggle when the probabilities are one-hot)
+   the class probabilities; a hard toggle when the probabilities are one-hot); the
+   magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
 5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
@@ -52,6 +53,7 @@ class TogglingSettings(FilterSettings):
         static_state: name of the state in which the gyro bias is learned.
         bias_gain: per-sample low-pass gain of the bias estimate at p_static = 1 (0 disables).
         bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
+        mag_disturbance_scale: σ_m [µT] of step 4; 0 turns the disturbance scaling off.
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models.
     """
@@ -63,6 +65,7 @@ class TogglingSettings(FilterSettings):
     static_state: str = "static"
     bias_gain: float = 0.002
     bias_gate: float = 0.05
+    mag_disturbance_scale: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -79,6 +82,8 @@ class TogglingSettings(FilterSettings):
             raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
         if self.static_state not in self.states:
             raise ValueError(f"static_state {self.static_state!r} is not one of {self.states}")
+        if self.mag_disturbance_scale < 0.0:
+            raise ValueError(f"mag_disturbance_scale must be >= 0 µT, got {self.mag_disturbance_scale}")
         if not (0.0 <= self.bias_gain <= 1.0 and self.bias_gate >= 0.0):
             raise ValueError("bias_gain must be in [0, 1] and bias_gate >= 0")
 
@@ -114,6 +119,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     use_mag, max_dt, ns = params[0] > 0.5, params[1], int(params[2])
     o = 3 + 2 * ns
     gamma, bias_gain, static_idx, bias_gate = params[o], params[o + 1], int(params[o + 2]), params[o + 3]
+    mag_scale = params[o + 4]
     eta_ok = True
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
@@ -127,6 +133,9 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     acc_ok = vector_ok(a_d)
     mag_ok = use_mag and vector_ok(m_d)
     alpha_a, alpha_m, _ = _gains(params, pred, ns)
+    if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted
+        e2 = pred[ns + 3] * pred[ns + 3] + pred[ns + 4] * pred[ns + 4] + pred[ns + 5] * pred[ns + 5]
+        alpha_m = alpha_m / (1.0 + e2 / (mag_scale * mag_scale))
     p_static = pred[static_idx] if pred[static_idx] >= 0.0 else 0.0
     diag[0] = 0.0
     diag[1] = 0.0
@@ -202,7 +211,7 @@ class TogglingFilter(OrientationFilter):
     def _coefficients(self) -> np.ndarray:
         s = self.settings
         return np.array([len(s.states), *s.alpha_acc, *s.alpha_mag, s.gamma, s.bias_gain,
-                         s.states.index(s.static_state), s.bias_gate], dtype=np.float64)
+                         s.states.index(s.static_state), s.bias_gate, s.mag_disturbance_scale], dtype=np.float64)
 
     @property
     def n_predictions(self) -> int:
@@ -270,6 +279,31 @@ class CompiledModels:
         for target in ("acc", "mag"):
             forests += [FlatForest.from_booster(b) for b in bundle.regressors[target].boosters_]
         return cls(FlatForest.concatenate(forests), bundle.classifier.class_names_, settings, bundle.schema.hash)
+
+    def predict_samples(self, gyr, acc, mag, fs: float) -> np.ndarray:
+        """Per-sample predictions ``(N, S + 6)`` as the in-loop filter holds them: from the
+        vectorised features at each window end, held until the next one; NaN before the
+        first full window. For learning gains on whole trials without re-running the trees."""
+        from ..features import compute_features
+
+        n = np.shape(gyr)[0]
+        pred = np.full((n, self.forest.n_outputs), np.nan)
+        if n < window_length_samples(fs, self.feature_settings):
+            return pred
+        X, ends = compute_features(gyr, acc, mag, fs, self.feature_settings)
+        m = self.forest.predict_margin(X)
+        k = len(self.class_names)
+        e = np.exp(m[:, :k] - m[:, :k].max(axis=1, keepdims=True))
+        m[:, :k] = e / e.sum(axis=1, keepdims=True)
+        idx = np.searchsorted(ends, np.arange(n), side="right") - 1  # last window end <= sample
+        pred[idx >= 0] = m[idx[idx >= 0]]
+        return pred
+
+
+def window_length_samples(fs, feature_settings) -> int:
+    from ..features import window_length
+
+    return window_length(fs, feature_settings.window_s)
 
 
 @njit(cache=True)

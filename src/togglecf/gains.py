@@ -1,0 +1,102 @@
+"""Learning the toggling filter's gains on training trials (coordinate descent on BROAD RMSE).
+
+The models' predictions do not depend on the gains, so they are computed once per trial
+(``CompiledModels.predict_samples``) and every candidate setting only re-runs the cheap
+filter core. The objective is BROAD's: the mean total RMSE over the given trials (6D: with
+the constant heading offset removed). Each parameter is searched on its own grid while the
+others are held; a few sweeps over all parameters converge on these smooth objectives.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .evaluation import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
+from .filters.toggling import TogglingFilter, TogglingSettings
+from .progress import progress
+
+__all__ = ["GainSearch", "learn_gains", "mean_total_rmse"]
+
+_ALPHA_GRID = (0.0, 0.00003, 0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
+
+
+@dataclass(frozen=True)
+class GainSearch:
+    """Grids of the coordinate descent (gains per sample at the data's rate; σ_m in µT).
+
+    Attributes:
+        alpha: grid of every per-state acc and mag gain.
+        gamma: grid of the output blend weight.
+        bias_gain: grid of the rest-bias low-pass gain.
+        mag_disturbance_scale: grid of σ_m (0 = off).
+        sweeps: passes over all parameters.
+    """
+
+    alpha: tuple = _ALPHA_GRID
+    gamma: tuple = (0.3, 0.6, 1.0)
+    bias_gain: tuple = (0.0, 0.0003, 0.001, 0.003)
+    mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
+    sweeps: int = 2
+
+
+def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True) -> float:
+    """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``."""
+    errs = []
+    for t, pred in zip(trials, predictions):
+        f = TogglingFilter(t.fs, settings, use_mag=use_mag)
+        q = f.update_batch(t.gyr, t.acc, t.mag if use_mag else None, predictions=pred).quat
+        if not use_mag:
+            q = remove_heading_offset(q, t.opt_quat, t.movement)
+        errs.append(rmse_deg(error_angles_rad(error_quaternion(q, t.opt_quat))["total"], t.movement))
+    return float(np.mean(errs))
+
+
+def _candidates(settings: TogglingSettings, search: GainSearch):
+    """(label, list of settings) for each coordinate."""
+    n = len(settings.states)
+    for name in ("alpha_acc", "alpha_mag"):
+        for s in range(n):
+            vals = []
+            for a in search.alpha:
+                g = list(getattr(settings, name))
+                g[s] = a
+                vals.append((a, {name: tuple(g)}))
+            yield f"{name}[{settings.states[s]}]", vals
+    for name in ("gamma", "bias_gain", "mag_disturbance_scale"):
+        yield name, [(v, {name: v}) for v in getattr(search, name)]
+
+
+def learn_gains(trials, predictions, states, static_state, use_mag: bool = True, search: GainSearch | None = None,
+                start: TogglingSettings | None = None, verbose: bool = False):
+    """Coordinate descent from ``start`` (default: moderate gains). Returns ``(settings, history)``
+    with ``history`` a list of ``(parameter, value, objective)`` after each accepted step."""
+    search = search or GainSearch()
+    n = len(states)
+    settings = start or TogglingSettings(states=tuple(states), static_state=static_state,
+                                         alpha_acc=(0.001,) * n, alpha_mag=(0.0003,) * n, gamma=1.0, bias_gain=0.001)
+    if not use_mag:
+        search = replace(search, mag_disturbance_scale=(settings.mag_disturbance_scale,))
+    best = mean_total_rmse(settings, trials, predictions, use_mag)
+    history = [("start", None, best)]
+    coords = list(_candidates(settings, search))
+    for sweep in range(search.sweeps):
+        improved = False
+        for label, _ in progress(coords, desc=f"gains sweep {sweep + 1}", unit="param"):
+            if not use_mag and label.startswith("alpha_mag"):
+                continue
+            cands = dict(_candidates(settings, search))[label]  # rebuilt from the current settings
+            for value, change in cands:
+                trial_settings = replace(settings, **change)
+                if trial_settings == settings:
+                    continue
+                obj = mean_total_rmse(trial_settings, trials, predictions, use_mag)
+                if obj < best - 1e-9:
+                    best, settings, improved = obj, trial_settings, True
+                    history.append((label, value, obj))
+            if verbose:
+                print(f"  {label}: {best:.4f}°", flush=True)
+        if not improved:
+            break
+    return settings, history

@@ -41,3 +41,11 @@ def test_learned_gains_follow_the_motion_state():
     fixed = TogglingSettings(states=("rest", "dynamic"), static_state="rest", alpha_acc=(a_rest, a_rest),
                              alpha_mag=settings.alpha_mag, bias_gain=settings.bias_gain)
     assert mean_total_rmse(settings, trials, preds) < mean_total_rmse(fixed, trials, preds)
+
+
+def test_parallel_objective_equals_serial():
+    trials, preds = zip(*(make_trial(s) for s in (3, 4, 5)))
+    search = GainSearch(alpha=(0.0003, 0.003), gamma=(1.0,), bias_gain=(0.0,), mag_disturbance_scale=(0.0,), sweeps=1)
+    serial = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
+    parallel = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, jobs=2)
+    assert serial == parallel  # same settings and the same objective values, bit for bit

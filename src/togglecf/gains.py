@@ -41,16 +41,48 @@ class GainSearch:
     sweeps: int = 2
 
 
-def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True) -> float:
-    """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``."""
-    errs = []
-    for t, pred in zip(trials, predictions):
-        f = TogglingFilter(t.fs, settings, use_mag=use_mag)
-        q = f.update_batch(t.gyr, t.acc, t.mag if use_mag else None, predictions=pred).quat
-        if not use_mag:
-            q = remove_heading_offset(q, t.opt_quat, t.movement)
-        errs.append(rmse_deg(error_angles_rad(error_quaternion(q, t.opt_quat))["total"], t.movement))
-    return float(np.mean(errs))
+def _trial_total(t, pred, settings, use_mag) -> float:
+    f = TogglingFilter(t.fs, settings, use_mag=use_mag)
+    q = f.update_batch(t.gyr, t.acc, t.mag if use_mag else None, predictions=pred).quat
+    if not use_mag:
+        q = remove_heading_offset(q, t.opt_quat, t.movement)
+    return rmse_deg(error_angles_rad(error_quaternion(q, t.opt_quat))["total"], t.movement)
+
+
+def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True, pool=None) -> float:
+    """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``.
+    ``pool``: an ``_TrialPool`` (from ``learn_gains``) to spread the trials over processes."""
+    if pool is not None:
+        return float(np.mean(pool.map(settings, use_mag)))
+    return float(np.mean([_trial_total(t, p, settings, use_mag) for t, p in zip(trials, predictions)]))
+
+
+_WORK = {}
+
+
+def _pool_task(i, settings, use_mag):
+    t, p = _WORK["trials"][i], _WORK["predictions"][i]
+    return _trial_total(t, p, settings, use_mag)
+
+
+class _TrialPool:
+    """Fork workers that inherit the trials and predictions (nothing large is pickled)."""
+
+    def __init__(self, trials, predictions, jobs):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        _WORK["trials"], _WORK["predictions"] = list(trials), list(predictions)
+        TogglingFilter(100.0).update_batch(np.zeros((2, 3)), np.ones((2, 3)), np.ones((2, 3)))  # compile first
+        self.n = len(trials)
+        self.ex = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork"))
+
+    def map(self, settings, use_mag):
+        return list(self.ex.map(_pool_task, range(self.n), [settings] * self.n, [use_mag] * self.n))
+
+    def close(self):
+        self.ex.shutdown()
+        _WORK.clear()
 
 
 def _candidates(settings: TogglingSettings, search: GainSearch):
@@ -69,16 +101,26 @@ def _candidates(settings: TogglingSettings, search: GainSearch):
 
 
 def learn_gains(trials, predictions, states, static_state, use_mag: bool = True, search: GainSearch | None = None,
-                start: TogglingSettings | None = None, verbose: bool = False):
+                start: TogglingSettings | None = None, verbose: bool = False, jobs: int = 1):
     """Coordinate descent from ``start`` (default: moderate gains). Returns ``(settings, history)``
-    with ``history`` a list of ``(parameter, value, objective)`` after each accepted step."""
+    with ``history`` a list of ``(parameter, value, objective)`` after each accepted step.
+    ``jobs > 1`` spreads the trials over that many forked processes."""
+    pool = _TrialPool(trials, predictions, jobs) if jobs > 1 and len(trials) > 1 else None
+    try:
+        return _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool)
+    finally:
+        if pool is not None:
+            pool.close()
+
+
+def _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool):
     search = search or GainSearch()
     n = len(states)
     settings = start or TogglingSettings(states=tuple(states), static_state=static_state,
                                          alpha_acc=(0.001,) * n, alpha_mag=(0.0003,) * n, gamma=1.0, bias_gain=0.001)
     if not use_mag:
         search = replace(search, mag_disturbance_scale=(settings.mag_disturbance_scale,))
-    best = mean_total_rmse(settings, trials, predictions, use_mag)
+    best = mean_total_rmse(settings, trials, predictions, use_mag, pool)
     history = [("start", None, best)]
     coords = list(_candidates(settings, search))
     for sweep in range(search.sweeps):
@@ -91,7 +133,7 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
                 trial_settings = replace(settings, **change)
                 if trial_settings == settings:
                     continue
-                obj = mean_total_rmse(trial_settings, trials, predictions, use_mag)
+                obj = mean_total_rmse(trial_settings, trials, predictions, use_mag, pool)
                 if obj < best - 1e-9:
                     best, settings, improved = obj, trial_settings, True
                     history.append((label, value, obj))

@@ -142,3 +142,50 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
         if not improved:
             break
     return settings, history
+
+
+GAINS_FILE = "gains.json"
+
+
+def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True):
+    """Write ``gains.json`` beside the models (atomically): the learned settings, the trials
+    they were learned on, the objective history and the models' schema hash they belong to."""
+    import json
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from .io import atomic_write_json
+
+    model_dir = Path(model_dir)
+    meta = json.loads((model_dir / "metadata.json").read_text())
+    key = "9d" if use_mag else "6d"
+    path = model_dir / GAINS_FILE
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    doc["feature_schema_hash"] = meta["feature_schema"]["hash"]
+    doc[key] = {"settings": asdict(settings), "trials": [getattr(t, "name", t) for t in trials],
+                "objective": "mean total RMSE [deg] over the trials (BROAD)",
+                "history": [[p, v, float(o)] for p, v, o in history]}
+    atomic_write_json(path, doc)
+    return path
+
+
+def load_gains(model_dir, use_mag: bool = True) -> TogglingSettings:
+    """The learned settings stored by ``save_gains``; refuses gains learned for other models."""
+    import json
+    from pathlib import Path
+
+    model_dir = Path(model_dir)
+    path = model_dir / GAINS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no learned gains; run `togglecf train` (it learns them after the models)")
+    doc = json.loads(path.read_text())
+    meta = json.loads((model_dir / "metadata.json").read_text())
+    if doc.get("feature_schema_hash") != meta["feature_schema"]["hash"]:
+        raise ValueError(f"{path}: gains were learned for models with another feature schema")
+    key = "9d" if use_mag else "6d"
+    if key not in doc:
+        raise KeyError(f"{path}: no {key.upper()} gains stored (have: {sorted(k for k in doc if k in ('9d', '6d'))})")
+    s = dict(doc[key]["settings"])
+    for k in ("states", "alpha_acc", "alpha_mag"):
+        s[k] = tuple(s[k])
+    return TogglingSettings(**s)

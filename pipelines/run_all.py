@@ -1,0 +1,32 @@
+"""The full held-out study: train with CV folds, evaluate all filters, write the report.
+
+    python pipelines/run_all.py [--data DIR] [--out reports/study] [--config pipelines/configs/study.toml]
+                                [--trials 01,02,...] [--folds K]
+
+Writes reports/study/{summary.md, per_trial.csv, per_trial_total.csv, per_group.csv, results.json,
+plots/*.png, folds/fold<k>/models/} (see togglecf.study and togglecf.report).
+"""
+import argparse
+import sys
+from dataclasses import replace
+
+from togglecf.study import DEFAULT_STUDY_CONFIG, load_study_config, run_study
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", metavar="DIR")
+    p.add_argument("--out", default="reports/study", metavar="DIR")
+    p.add_argument("--config", default=str(DEFAULT_STUDY_CONFIG), metavar="TOML")
+    p.add_argument("--trials", metavar="LIST")
+    p.add_argument("--folds", type=int)
+    args = p.parse_args(argv)
+    cfg = load_study_config(args.config)
+    if args.folds:
+        cfg = replace(cfg, folds=args.folds)
+    run_study(cfg, data_dir=args.data, out_dir=args.out, trials=args.trials)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -15,7 +15,7 @@ from .data import DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
 from .evaluation import METRICS, group_means
 from .filters import FILTERS
 from .io import atomic_write_json, atomic_write_text
-from .runner import evaluate_trials, grid_search, parse_grid
+from .runner import build_filter, evaluate_trials, grid_search, parse_grid
 
 
 def main(argv=None) -> int:
@@ -26,7 +26,7 @@ def main(argv=None) -> int:
         return 2
     try:
         return args.func(args) or 0
-    except (DataError, DataNotFoundError, ValueError, KeyError, TypeError) as exc:
+    except (DataError, DataNotFoundError, FileNotFoundError, ValueError, KeyError, TypeError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"togglecf {args.command}: error: {msg}", file=sys.stderr)
         return 1
@@ -48,9 +48,11 @@ def _parser():
 
     sp = sub.add_parser("evaluate", help="run a filter on BROAD trials and print BROAD's error table")
     data_args(sp)
-    sp.add_argument("--filter", required=True, choices=sorted(FILTERS))
+    sp.add_argument("--filter", required=True, choices=sorted(FILTERS) + ["toggling"])
     sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="filter setting, repeatable (default: the filter's documented defaults)")
+    sp.add_argument("--models", metavar="DIR", help="toggling filter: a `togglecf train` model directory "
+                    "(models + learned gains)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
     sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
     sp.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
@@ -134,11 +136,16 @@ def cmd_evaluate(args):
     index = _index(args)
     names = index.select(args.trials)
     params = _params(args.param)
-    cls = FILTERS[args.filter]
-    cls(285.0, **params)  # validate the settings before starting workers
+    if args.filter == "toggling":
+        if not args.models or params:
+            raise ValueError("--filter toggling needs --models DIR (a `togglecf train` output) and takes no --param")
+        params = {"models": str(Path(args.models).resolve())}
+    elif args.models:
+        raise ValueError("--models is for --filter toggling")
+    # validate the settings (and load the models) before starting workers
+    settings = build_filter(args.filter, 285.0, params, use_mag=not args.six_d).settings
     res = evaluate_trials(index, names, args.filter, [params], use_mag=not args.six_d, jobs=args.jobs)[0]
     per_trial, per_group = _tables(res, index.groups)
-    settings = cls(285.0, **params).settings
     _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group)
     if args.out:
         _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings)))

@@ -35,9 +35,23 @@ class TrialResult:
     params: dict = field(default_factory=dict)
 
 
+def build_filter(filter_name: str, fs: float, params: dict, use_mag: bool = True):
+    """A filter by CLI name; ``toggling`` takes ``params={"models": DIR}`` (models + learned gains)."""
+    if filter_name == TOGGLING:
+        if set(params) != {"models"}:
+            raise ValueError("the toggling filter takes its models and learned gains from --models DIR, no --param")
+        from .filters.toggling import load_toggling_filter
+
+        return load_toggling_filter(params["models"], fs, use_mag=use_mag)
+    return make_filter(filter_name, fs, use_mag=use_mag, **params)
+
+
+TOGGLING = "toggling"
+
+
 def run_filter(trial: Trial, filter_name: str, params: dict, use_mag: bool = True):
     """Run a filter on a trial. Returns ``(FilterOutput, µs per sample)``."""
-    f = make_filter(filter_name, trial.fs, use_mag=use_mag, **params)
+    f = build_filter(filter_name, trial.fs, params, use_mag)
     _warm_up(filter_name, trial.fs, use_mag, params)
     t0 = time.perf_counter()
     out = f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None)
@@ -53,7 +67,7 @@ def _warm_up(filter_name, fs, use_mag, params):
     key = (filter_name, use_mag)
     if key in _WARM:
         return
-    f = make_filter(filter_name, fs, use_mag=use_mag, **params)
+    f = build_filter(filter_name, fs, params, use_mag)
     z = np.tile([[0.0, 0.0, 9.81]], (4, 1))
     f.update_batch(z * 0.0, z, z + [20.0, 0.0, 0.0] if use_mag else None)
     _WARM.add(key)

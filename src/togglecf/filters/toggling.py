@@ -426,3 +426,21 @@ class ModelTogglingFilter(TogglingFilter):
         names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
         diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
         return FilterOutput(quat_out, diags)
+
+
+_COMPILED_CACHE: dict = {}
+
+
+def load_toggling_filter(model_dir, fs: float, use_mag: bool = True) -> ModelTogglingFilter:
+    """The trained toggling filter of a model directory (``togglecf train`` output): the
+    models (schema-checked, hash-verified) compiled for the loop, with the learned gains."""
+    from pathlib import Path
+
+    from ..gains import load_gains
+    from ..models import load_bundle
+
+    key = str(Path(model_dir).resolve())
+    if key not in _COMPILED_CACHE:  # flattening the trees takes ~1 s: once per process
+        _COMPILED_CACHE[key] = CompiledModels.from_bundle(load_bundle(model_dir))
+    models = _COMPILED_CACHE[key]
+    return ModelTogglingFilter(fs, load_gains(model_dir, use_mag=use_mag), models=models, use_mag=use_mag)

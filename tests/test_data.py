@@ -207,3 +207,14 @@ def test_real_trials_load_in_both_formats(broad_index, name):
     # acc at rest ~ g, mag norm tens of µT: units as documented
     assert 9.0 < np.median(np.linalg.norm(t.acc, axis=1)) < 10.6
     assert 20 < np.median(np.linalg.norm(t.mag, axis=1)) < 80
+
+
+def test_atomic_writes_have_normal_permissions(tmp_path):
+    import stat
+
+    from togglecf.io import atomic_write_text
+    p = atomic_write_text(tmp_path / "a" / "x.txt", "hello")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask  # not mkstemp's 0600
+    assert p.read_text() == "hello" and [q.name for q in p.parent.iterdir()] == ["x.txt"]  # no temp file left

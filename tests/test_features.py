@@ -84,6 +84,24 @@ def test_every_sample_hop(rng):
     np.testing.assert_allclose(X, _slow_features(gyr, acc, mag, FS, s, ends), rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("window_s, hop_s", [(0.05, 0.08), (0.2, 0.05), (0.23, 0.07), (0.3, 0.01)])
+def test_min_max_paths_agree(rng, window_s, hop_s):
+    """Block min/max (hop longer or shorter than the window, with and without remainder, and the
+    van Herk fallback for many tiny blocks) equal the per-window loop. Min/max themselves are
+    exact; the 1e-12 tolerance only covers the per-sample channels (numpy norms vs math.sqrt),
+    while a wrong window would be off by O(1)."""
+    gyr, acc, mag = _signals(rng, 700)
+    s = FeatureSettings(window_s=window_s, hop_s=hop_s)
+    X, ends = compute_features(gyr, acc, mag, FS, s)
+    ref = _slow_features(gyr, acc, mag, FS, s, ends)
+    names = feature_schema(s).names
+    minmax = [i for i, n in enumerate(names) if n.endswith(("_min", "_max"))]
+    np.testing.assert_allclose(X[:, minmax], ref[:, minmax], rtol=1e-12, atol=1e-12)
+    irregular = np.sort(rng.choice(np.arange(window_length(FS, window_s) - 1, 700), 50, replace=False))
+    Xi, _ = compute_features(gyr, acc, mag, FS, s, ends=irregular)
+    np.testing.assert_allclose(Xi, _slow_features(gyr, acc, mag, FS, s, irregular), rtol=1e-9, atol=1e-9)
+
+
 def test_causal(rng):
     """Changing samples after k never changes the features of windows ending at or before k."""
     gyr, acc, mag = _signals(rng, 2000)

@@ -68,6 +68,10 @@ def _parser():
     sp.add_argument("--jobs", type=int, default=None)
     sp.set_defaults(func=cmd_tune)
 
+    from .train import add_train_parser
+
+    add_train_parser(sub)
+
     sp = sub.add_parser("download", help="fetch BROAD (trial files + trials.json) from GitHub")
     sp.add_argument("dest", nargs="?", default="data/broad", help="target directory (default: ./data/broad)")
     sp.add_argument("--url", default=None, help="archive URL (default: BROAD's GitHub main branch zip)")

@@ -21,9 +21,10 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
 Window statistics over ``[k−L+1, k]`` (``WINDOW_CHANNELS``): ``mean``, ``std`` (population,
 ``sqrt(max(0, E[(x−c)²] − E[x−c]²))`` with ``c`` the channel's value at sample 0, a shift that
 only improves rounding), ``min``, ``max``; plus ``gyr_energy_mean``; plus the current value
-(``_last``) of ``LAST_CHANNELS``. The vectorised code uses cumulative sums (mean, std) and van
-Herk min/max filters (``scipy.ndimage``), an incremental implementation (ring buffer with running
-sums) gives the same values up to floating-point rounding (~1e-9 relative).
+(``_last``) of ``LAST_CHANNELS``. The vectorised code uses cumulative sums (mean, std) and
+per-hop block minima/maxima (van Herk filters from ``scipy.ndimage`` for irregular ends); an
+incremental implementation (ring buffer with running sums, ``streaming_features``) gives the
+same values up to floating-point rounding (~1e-9 relative; min/max exactly).
 """
 from __future__ import annotations
 
@@ -225,15 +226,47 @@ def compute_features(gyr, acc, mag, fs: float, settings: FeatureSettings | None 
     var = np.maximum((c2[:, hi] - c2[:, lo]) / L - mean0 * mean0, 0.0)
     mean = mean0 + W[:, :1]
     std = np.sqrt(var)
-    centre = ends - L + 1 + L // 2  # a centred filter of size L at `centre` covers [k−L+1, k]
-    mn = minimum_filter1d(W, L, axis=1, mode="nearest")[:, centre]
-    mx = maximum_filter1d(W, L, axis=1, mode="nearest")[:, centre]
+    mn, mx = _window_min_max(W, ends, L)
     stats = np.stack([mean, std, mn, mx], axis=2).transpose(1, 0, 2).reshape(len(ends), -1)  # channel-major
     ge = np.concatenate([[0.0], np.cumsum(ch["gyr_energy"])])
     ge_mean = ((ge[hi] - ge[lo]) / L)[:, None]
     last = np.stack([ch[c][ends] for c in LAST_CHANNELS], axis=1)
     X = np.concatenate([stats, ge_mean, last], axis=1)
     return X, ends
+
+
+def _window_min_max(W: np.ndarray, ends: np.ndarray, L: int):
+    """Min and max of ``W (C, N)`` over the windows ``[k−L+1, k]`` for ``k`` in ``ends``.
+
+    Evenly spaced ends (step ``H``): split the samples into blocks of ``H`` ending at the window
+    ends; a window is its last ``q = L // H`` whole blocks plus the last ``r = L − qH`` samples of
+    the block before, so per-block reductions and ``q`` elementwise minima give exact results in
+    O(N). Otherwise (or for many tiny blocks) van Herk filters over all samples (scipy.ndimage).
+    """
+    J = len(ends)
+    if J == 0:
+        return np.empty((W.shape[0], 0)), np.empty((W.shape[0], 0))
+    H = int(ends[1] - ends[0]) if J > 1 else L
+    q, r = divmod(L, H)
+    if J > 1 and np.all(np.diff(ends) == H) and q <= 16:
+        start = int(ends[0]) - (q + 1) * H + 1
+        stop = int(ends[-1]) + 1
+        if start < 0:  # samples before the first window are never used: pad with any value
+            P = np.concatenate([np.repeat(W[:, :1], -start, axis=1), W[:, :stop]], axis=1)
+        else:
+            P = W[:, start:stop]
+        blocks = P.reshape(W.shape[0], J + q, H)
+        out = []
+        for red, acc in ((np.min, np.minimum), (np.max, np.maximum)):
+            b = red(blocks, axis=2)  # block i of the array is block i−q relative to the first end
+            res = red(blocks[:, :J, H - r:], axis=2) if r else b[:, 1:1 + J].copy()
+            for d in range(0 if r else 1, q):
+                acc(res, b[:, 1 + d:1 + d + J], out=res)
+            out.append(res)
+        return out[0], out[1]
+    centre = ends - L + 1 + L // 2  # a centred filter of size L at `centre` covers [k−L+1, k]
+    return (minimum_filter1d(W, L, axis=1, mode="nearest")[:, centre],
+            maximum_filter1d(W, L, axis=1, mode="nearest")[:, centre])
 
 
 def trial_features(trial, settings: FeatureSettings | None = None, ends=None):

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +33,11 @@ __all__ = ["MotionClassifier", "NoiseRegressor", "ModelBundle", "save_bundle", "
 
 AXES = ("x", "y", "z")
 BUNDLE_FORMAT = 1
+
+# OpenMP threads that spin while waiting make XGBoost ~9x slower (measured: 6.8 s vs 0.8 s for
+# 20 trees) when the machine's cores are shared with other work; sleeping waits avoid that. Only
+# effective if set before XGBoost's OpenMP runtime starts, hence at import of this module.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _xgb():
@@ -260,8 +267,11 @@ def classification_metrics(y_true, proba, n_classes: int) -> dict:
     proba = np.asarray(proba, float)
     y_pred = np.argmax(proba, axis=1)
     present = np.unique(np.concatenate([y_true, y_pred]))
+    with warnings.catch_warnings():  # a predicted class absent from y_true is expected here
+        warnings.simplefilter("ignore", UserWarning)
+        bal = float(balanced_accuracy_score(y_true, y_pred))
     out = {"n": int(len(y_true)),
-           "balanced_accuracy": float(balanced_accuracy_score(y_true, y_pred)),
+           "balanced_accuracy": bal,
            "f1_macro": float(f1_score(y_true, y_pred, labels=present, average="macro", zero_division=0)),
            "confusion": confusion_matrix(y_true, y_pred, labels=np.arange(n_classes)).tolist()}
     aucs = []

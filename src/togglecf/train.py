@@ -174,7 +174,7 @@ def cross_validate(cfg, data: WindowData, schema, class_names):
     """Per-fold and pooled CV metrics; ``folds`` records each fold's train/test trial names."""
     n_classes = len(class_names)
     folds = make_folds(data.group, len(data.trials), cfg["run"]["cv_folds"])
-    out = {"folds": []}
+    out = {"folds": [], "per_trial": {}}
     pooled = {"y": [], "proba": [], "const": [], "acc": [], "acc_t": [], "mag": [], "mag_t": []}
     for i, (train_g, test_g) in enumerate(progress(folds, desc="cross-validation", unit="fold")):
         train_rows = np.flatnonzero(np.isin(data.group, train_g) & data.train_mask)
@@ -186,6 +186,17 @@ def cross_validate(cfg, data: WindowData, schema, class_names):
                    train_trials=[data.trials[g] for g in train_g], n_train=len(train_rows),
                    n_test=len(test_rows), seconds=time.perf_counter() - t0)
         out["folds"].append(res)
+        for g in test_g:  # held-out numbers of every test trial on its own
+            sel = data.group[test_rows] == g
+            yt = data.state[test_rows][sel]
+            m = classification_metrics(yt, preds["proba"][sel], n_classes)
+            pt = {"fold": i, "n": int(sel.sum()), "balanced_accuracy": m["balanced_accuracy"], "f1_macro": m["f1_macro"]}
+            for t in ("acc", "mag"):
+                ytt = getattr(data, f"eta_{t}")[test_rows][sel]
+                r = regression_metrics(ytt, preds[t][sel])
+                pt.update({f"{t}_rmse": r["rmse"], f"{t}_r2": r["r2"],
+                           f"{t}_rmse_zero": regression_metrics(ytt, np.zeros_like(ytt))["rmse"]})
+            out["per_trial"][data.trials[g]] = pt
         pooled["y"].append(data.state[test_rows])
         pooled["proba"].append(preds["proba"])
         c = np.zeros_like(preds["proba"])
@@ -230,6 +241,12 @@ def format_cv_table(cv: dict, class_names) -> str:
     w = max(len(c) for c in class_names)
     for name, r in zip(class_names, conf):
         lines.append(f"  {name:>{w}} " + " ".join(f"{v:8d}" for v in r))
+    if cv.get("per_trial"):
+        lines.append("\nper held-out trial: balanced accuracy | acc RMSE (zero) R² | mag RMSE (zero) R²")
+        for name in sorted(cv["per_trial"]):
+            p = cv["per_trial"][name]
+            lines.append(f"  {name[:40]:40s} {p['balanced_accuracy']:6.3f} | {p['acc_rmse']:6.3f} ({p['acc_rmse_zero']:6.3f}) "
+                         f"{p['acc_r2']:7.3f} | {p['mag_rmse']:6.3f} ({p['mag_rmse_zero']:6.3f}) {p['mag_r2']:7.3f}")
     lines.append("acc/mag: RMSE [m/s², µT] pooled over axes; R² = 1 − SSE/SST; (zero) = predicting no noise; "
                  "(maj) = majority class of the fold's training set")
     return "\n".join(lines)
@@ -288,6 +305,8 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
     timing["dataset_s"] = time.perf_counter() - t0
     log(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
         f"in {timing['dataset_s']:.1f} s")
+    log("RANSAC inlier fraction per trial (" + ("applied" if label_settings.ransac else "not applied") + "): "
+        + ", ".join(f"{_short(n)} {p['inlier_fraction']:.4f}" for n, p in data.per_trial.items()))
     result = {"out": str(out_dir), "timing": timing}
     if cv:
         t0 = time.perf_counter()

@@ -13,7 +13,8 @@ from . import quaternion as quat
 from .data import GRAVITY, Trial
 
 __all__ = ["EARTH_MAG_ENU", "imu_from_orientation", "static_trajectory", "axis_sweep_trajectory",
-           "random_smooth_trajectory"]
+           "random_smooth_trajectory", "gimbal_trajectory", "turntable_trajectory", "random_walk_bias",
+           "linear_acceleration_bursts", "vibration", "mag_disturbance_intervals"]
 
 #: Earth field in ENU [µT]: 49 µT with 67° dip, close to Berlin's (where BROAD was recorded).
 EARTH_MAG_ENU = 49.0 * np.array([0.0, np.cos(np.radians(67.0)), -np.sin(np.radians(67.0))])
@@ -27,9 +28,12 @@ def imu_from_orientation(q, fs: float, *, name: str = "synthetic", gyro_noise: f
 
     Args:
         gyro_noise, acc_noise, mag_noise: white-noise standard deviations [rad/s, m/s², µT].
-        gyro_bias: constant gyro bias ``(3,)`` [rad/s] (sensor frame).
-        lin_acc_earth: ``(N, 3)`` linear acceleration of the sensor in ENU [m/s²], optional.
-        mag_disturbance_earth: ``(N, 3)`` field added to ``mag_earth`` in ENU [µT], optional.
+        gyro_bias: gyro bias [rad/s] (sensor frame): constant ``(3,)`` or per sample ``(N, 3)``
+            (e.g. from ``random_walk_bias``).
+        lin_acc_earth: ``(N, 3)`` linear acceleration of the sensor in ENU [m/s²], optional
+            (``linear_acceleration_bursts``, ``vibration``, or their sum).
+        mag_disturbance_earth: ``(N, 3)`` field added to ``mag_earth`` in ENU [µT], optional
+            (``mag_disturbance_intervals``).
         seed: noise seed (runs are deterministic).
     """
     q = quat.normalize(quat.as_quat(q))
@@ -86,3 +90,69 @@ def random_smooth_trajectory(fs: float, duration: float, max_rate: float = 2.0, 
     for k in range(1, n):
         q[k] = quat.multiply(q[k - 1], dq[k])
     return quat.normalize(q)
+
+
+# ---------------------------------------------------------------------------------------------
+# More trajectories and disturbances (each returns an array to pass to ``imu_from_orientation``)
+# ---------------------------------------------------------------------------------------------
+
+def gimbal_trajectory(fs: float, duration: float, amplitude_deg=(30.0, 20.0, 90.0), freq_hz=(0.11, 0.07, 0.05),
+                      phase=(0.0, 0.5, 1.0)) -> np.ndarray:
+    """Three-axis gimbal: roll, pitch, yaw [deg] each a sinusoid ``A sin(2π f t + φ)``; ``(n, 4)``."""
+    t = np.arange(int(round(duration * fs))) / fs
+    rpy = np.stack([np.radians(a) * np.sin(2 * np.pi * f * t + p) for a, f, p in zip(amplitude_deg, freq_hz, phase)], -1)
+    return quat.from_euler_zyx(rpy)
+
+
+def turntable_trajectory(fs: float, duration: float, rate_deg_s: float = 30.0, tilt_deg: float = 20.0,
+                         tilt_axis=(1.0, 0.0, 0.0)) -> np.ndarray:
+    """Turntable spinning about the vertical at ``rate_deg_s`` with the sensor mounted tilted by
+    ``tilt_deg`` about the body ``tilt_axis``: ``q(t) = Rz(rate·t) ⊗ R(tilt)``; ``(n, 4)``."""
+    n = int(round(duration * fs))
+    yaw = np.radians(rate_deg_s) * np.arange(n) / fs
+    qz = np.stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)], -1)
+    axis = np.asarray(tilt_axis, float) / np.linalg.norm(tilt_axis)
+    return quat.multiply(qz, quat.from_rotvec(np.radians(tilt_deg) * axis))
+
+
+def random_walk_bias(n: int, fs: float, sigma: float = 1e-4, initial=(0.0, 0.0, 0.0), seed: int = 0) -> np.ndarray:
+    """Gyro bias ``(n, 3)`` [rad/s]: ``initial`` plus a random walk of ``sigma`` [rad/s/√s]."""
+    rng = np.random.default_rng(seed)
+    steps = sigma * np.sqrt(1.0 / fs) * rng.standard_normal((n, 3))
+    steps[0] = 0.0
+    return np.asarray(initial, float) + np.cumsum(steps, axis=0)
+
+
+def linear_acceleration_bursts(n: int, fs: float, bursts=((5.0, 1.0, (3.0, 0.0, 0.0)),)) -> np.ndarray:
+    """Linear acceleration in ENU ``(n, 3)`` [m/s²]: each burst ``(start [s], duration [s], peak
+    vector [m/s²])`` is a raised-cosine pulse (smooth, zero outside the burst)."""
+    out = np.zeros((n, 3))
+    t = np.arange(n) / fs
+    for start, dur, peak in bursts:
+        sel = (t >= start) & (t < start + dur)
+        w = 0.5 - 0.5 * np.cos(2 * np.pi * (t[sel] - start) / dur)
+        out[sel] += w[:, None] * np.asarray(peak, float)
+    return out
+
+
+def vibration(n: int, fs: float, amplitude: float = 1.0, freq_hz: float = 25.0, start: float = 0.0,
+              stop: float | None = None, seed: int = 0) -> np.ndarray:
+    """Vibration as linear acceleration in ENU ``(n, 3)`` [m/s²]: a sinusoid of ``freq_hz`` with a
+    random direction per axis and random phases, amplitude ``amplitude`` per axis, between
+    ``start`` and ``stop`` [s] (default: to the end)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    out = amplitude * np.sin(2 * np.pi * freq_hz * t[:, None] + ph)
+    active = (t >= start) & (t < (np.inf if stop is None else stop))
+    return out * active[:, None]
+
+
+def mag_disturbance_intervals(n: int, fs: float, intervals=((10.0, 20.0, (30.0, 0.0, 0.0)),)) -> np.ndarray:
+    """Magnetic disturbance in ENU ``(n, 3)`` [µT]: a constant field vector added during each
+    ``(start [s], stop [s], vector [µT])`` interval."""
+    out = np.zeros((n, 3))
+    t = np.arange(n) / fs
+    for start, stop, vec in intervals:
+        out[(t >= start) & (t < stop)] += np.asarray(vec, float)
+    return out

@@ -4,10 +4,17 @@ All filters output sensor -> ENU quaternions ``[w, x, y, z]``; ``FilterOutput.in
 converts to NED or NWU.
 """
 from .base import FilterOutput, FilterSettings, OrientationFilter, dt_from_timestamps
+from .acc_mag import AccMagFilter, AccMagSettings
+from .aqua import AquaFilter, AquaSettings
 from .complementary import CFSettings, ComplementaryFilter
+from .ekf import EKFFilter, EKFSettings
+from .gyro_only import GyroOnlyFilter, GyroSettings
+from .madgwick import MadgwickFilter, MadgwickSettings
+from .mahony import MahonyFilter, MahonySettings
 
 FILTERS = {
-    ComplementaryFilter.name: ComplementaryFilter,
+    cls.name: cls
+    for cls in (ComplementaryFilter, GyroOnlyFilter, AccMagFilter, MadgwickFilter, MahonyFilter, AquaFilter, EKFFilter)
 }
 
 
@@ -21,4 +28,6 @@ def make_filter(name: str, fs: float, use_mag: bool = True, **settings) -> Orien
 
 
 __all__ = ["FILTERS", "make_filter", "OrientationFilter", "FilterOutput", "FilterSettings", "dt_from_timestamps",
-           "ComplementaryFilter", "CFSettings"]
+           "ComplementaryFilter", "CFSettings", "GyroOnlyFilter", "GyroSettings", "AccMagFilter", "AccMagSettings",
+           "MadgwickFilter", "MadgwickSettings", "MahonyFilter", "MahonySettings", "AquaFilter", "AquaSettings",
+           "EKFFilter", "EKFSettings"]

@@ -44,3 +44,45 @@ def test_evaluate_and_tune_on_real_trials(broad_index, tmp_path, capsys):
     assert main(["tune", "--filter", "cf", "--grid", "alpha=0.0001,0.0003,0.01", *args]) == 0
     out = capsys.readouterr().out
     assert "TAGP of cf: {'alpha':" in out
+
+
+TINY_TRAIN = """
+[run]
+cv_folds = 2
+[features]
+hop_s = 0.1
+[classifier]
+n_estimators = 8
+max_depth = 3
+[regressor]
+n_estimators = 4
+max_depth = 3
+[gains]
+alpha = [0.0002, 0.002]
+gamma = [1.0]
+bias_gain = [0.0, 0.001]
+mag_disturbance_scale = [0.0]
+sweeps = 1
+"""
+
+
+@pytest.mark.broad
+def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, capsys):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(TINY_TRAIN)
+    models = tmp_path / "models"
+    data = ["--data", str(broad_index.root)]
+    assert main(["train", "--config", str(cfg), "--trials", "02,24,29", "--out", str(models), *data]) == 0
+    gains = json.loads((models / "gains.json").read_text())
+    assert set(gains) >= {"9d", "6d", "feature_schema_hash"}
+    assert gains["9d"]["trials"] == ["02_undisturbed_slow_rotation_B", "24_disturbed_tapping_A",
+                                     "29_disturbed_stationary_magnet_B"]
+    out = tmp_path / "eval"
+    for extra in ([], ["--6d"]):
+        assert main(["evaluate", "--filter", "toggling", "--models", str(models), "--trials", "07", "--out", str(out),
+                     "--jobs", "1", *extra, *data]) == 0
+        per_trial = pd.read_csv(out / "per_trial.csv", index_col=0)
+        # a trained filter on a fast-rotation trial it never saw: far from the tens of degrees of a broken one
+        assert per_trial.loc["07_undisturbed_fast_rotation_B", "total"] < 15.0
+    assert main(["evaluate", "--filter", "toggling", "--param", "alpha=0.1", "--models", str(models), *data]) == 1
+    assert "takes no --param" in capsys.readouterr().err

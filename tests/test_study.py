@@ -23,6 +23,12 @@ max_depth = 3
 [regressor]
 n_estimators = 5
 max_depth = 3
+[gains]
+alpha = [0.0002, 0.002]
+gamma = [1.0]
+bias_gain = [0.0, 0.001]
+mag_disturbance_scale = [0.0]
+sweeps = 1
 """
 
 STUDY = """
@@ -30,12 +36,6 @@ STUDY = """
 folds = 2
 train_config = "train.toml"
 ablations = ["toggling_only", "noise_only", "6d"]
-[gains]
-alpha = [0.0002, 0.002]
-gamma = [1.0]
-bias_gain = [0.0, 0.001]
-mag_disturbance_scale = [0.0]
-sweeps = 1
 [baselines.cf]
 alpha = [0.0002, 0.0003, 0.01]
 [baselines.madgwick]

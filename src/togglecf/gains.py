@@ -40,6 +40,14 @@ class GainSearch:
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
     sweeps: int = 2
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "GainSearch":
+        known = set(cls.__dataclass_fields__)
+        bad = sorted(set(d) - known)
+        if bad:
+            raise ValueError(f"unknown gain-search setting(s) {bad}; known: {sorted(known)}")
+        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v for k, v in d.items()})
+
 
 def _trial_total(t, pred, settings, use_mag) -> float:
     f = TogglingFilter(t.fs, settings, use_mag=use_mag)
@@ -189,3 +197,28 @@ def load_gains(model_dir, use_mag: bool = True) -> TogglingSettings:
     for k in ("states", "alpha_acc", "alpha_mag"):
         s[k] = tuple(s[k])
     return TogglingSettings(**s)
+
+
+def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=print) -> dict:
+    """After ``togglecf train``: learn the gains of each mode on the training ``trials`` with the
+    models of ``model_dir`` and store them in its ``gains.json``. Returns mode -> settings."""
+    import time
+
+    from .filters.toggling import CompiledModels
+    from .models import load_bundle
+
+    models = CompiledModels.from_bundle(load_bundle(model_dir))
+    preds = [models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in trials]
+    out = {}
+    for mode in modes:
+        if mode not in ("9d", "6d"):
+            raise ValueError(f"gain mode must be '9d' or '6d', got {mode!r}")
+        t0 = time.perf_counter()
+        settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=mode == "9d",
+                                     search=search, jobs=jobs)
+        save_gains(model_dir, settings, trials, hist, use_mag=mode == "9d")
+        log(f"gains {mode.upper()}: mean total RMSE on the training trials {hist[0][2]:.3f}° -> {hist[-1][2]:.3f}° "
+            f"in {time.perf_counter() - t0:.0f} s: acc {settings.alpha_acc}, mag {settings.alpha_mag}, "
+            f"gamma {settings.gamma}, bias {settings.bias_gain}, σ_m {settings.mag_disturbance_scale}")
+        out[mode] = settings
+    return out

@@ -29,7 +29,7 @@ import numpy as np
 from .data import DatasetIndex, resolve_data_dir
 from .evaluation import METRICS, error_angles_rad, error_quaternion, remove_heading_offset, trial_errors
 from .filters.toggling import CompiledModels, ModelTogglingFilter, TogglingFilter
-from .gains import GainSearch, learn_gains, save_gains
+from .gains import GainSearch, learn_gains, load_gains
 from .io import atomic_write_json
 from .models import load_bundle
 from .runner import evaluate_trials, parse_grid, run_filter
@@ -49,7 +49,8 @@ class StudyConfig:
         train_config: path of the ``togglecf train`` TOML used in every fold.
         baselines: filter name -> parameter grid (name -> values), 9D.
         baselines_6d: the same for the 6D comparison.
-        gains: the gain search of every fold.
+        gains: the gain search of the ablations (the main gains are learned by ``togglecf train``
+            with the ``[gains]`` of ``train_config``; this is the same search, read from there).
         ablations: which of ``ABLATIONS`` to run.
         jobs: worker processes.
     """
@@ -79,8 +80,10 @@ def load_study_config(path=None) -> StudyConfig:
         return {name: parse_grid([f"{k}={v}" if isinstance(v, str) else f"{k}={','.join(map(str, v))}"
                                   for k, v in g.items()]) for name, g in raw.get(section, {}).items()}
 
-    g = raw.get("gains", {})
-    search = GainSearch(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in g.items()})
+    from .train import _GAIN_KEYS, load_config
+
+    g = load_config(train_config)["gains"]
+    search = GainSearch.from_dict({k: v for k, v in g.items() if k not in _GAIN_KEYS})
     ablations = tuple(st.get("ablations", ABLATIONS))
     bad = set(ablations) - set(ABLATIONS)
     if bad:
@@ -167,26 +170,25 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     timelines = {}
     fold_info = []
     train_cfg = load_config(cfg.train_config)
+    train_cfg["gains"].update(learn=True, modes=["9d", "6d"] if "6d" in cfg.ablations else ["9d"])
     for k, test in enumerate(folds):
         train = [n for n in names if n not in test]
         _log(f"fold {k + 1}/{len(folds)}: train on {len(train)} trials, test on {', '.join(test)}")
         info = {"fold": k, "train": train, "test": test}
         t0 = time.perf_counter()
         model_dir = out / "folds" / f"fold{k}" / "models"
-        run_training(train_cfg, data_dir=index.root, trials=",".join(train), out=model_dir, cv=False, verbose=False)
+        res = run_training(train_cfg, data_dir=index.root, trials=",".join(train), out=model_dir, cv=False,
+                           verbose=False)  # models, then the gains on the same training trials
         models = CompiledModels.from_bundle(load_bundle(model_dir))
-        info["train_s"] = time.perf_counter() - t0
-        preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in names}
-        t0 = time.perf_counter()
-        tr_trials = [loaded[n] for n in train]
-        gains9, hist = learn_gains(tr_trials, [preds[n] for n in train], models.class_names, models.static_state,
-                                   search=cfg.gains, jobs=jobs)
-        save_gains(model_dir, gains9, train, hist, use_mag=True)
-        info["gains_s"] = time.perf_counter() - t0
+        gains9 = load_gains(model_dir, use_mag=True)
+        info["train_s"] = res["timing"]["final_fit_s"] + res["timing"]["dataset_s"]
+        info["gains_s"] = res["timing"].get("gains_s", 0.0)
+        hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
         info["gains"] = {"alpha_acc": gains9.alpha_acc, "alpha_mag": gains9.alpha_mag, "gamma": gains9.gamma,
                          "bias_gain": gains9.bias_gain, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                          "train_objective_deg": hist[-1][2]}
         _log(f"  models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}")
+        preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in names}
         for n in test:  # the headline filter: models compiled into the loop
             t = loaded[n]
             f = ModelTogglingFilter(t.fs, gains9, models=models)
@@ -254,8 +256,6 @@ def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, i
             p[:, 0] = 1.0
             return p
         variants["noise_only"] = (one_state, True, replace(cfg.gains, bias_gain=(0.0,)))
-    if "6d" in cfg.ablations:
-        variants["toggling_6d"] = (lambda p: p, False, cfg.gains)
     for name, (transform, use_mag, search) in variants.items():
         start = None
         if name == "noise_only":
@@ -271,18 +271,24 @@ def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, i
                                                                      predictions=transform(preds[n]))
             rows.append({"trial": n, "filter": name, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement,
                                                                                six_d=not use_mag)})
+    if "6d" in cfg.ablations:  # gains learned in 6D by `togglecf train`
+        s6 = load_gains(out / "folds" / f"fold{k}" / "models", use_mag=False)
+        for n in test:
+            t = loaded[n]
+            o = TogglingFilter(t.fs, s6, use_mag=False).update_batch(t.gyr, t.acc, None, predictions=preds[n])
+            rows.append({"trial": n, "filter": "toggling_6d", "fold": k,
+                         **trial_errors(o.quat, t.opt_quat, t.movement, six_d=True)})
     if "ransac_off" in cfg.ablations:
         from .train import run_training
 
         cfg_off = {s: dict(v) for s, v in train_cfg.items()}
         cfg_off["labels"]["ransac"] = False
+        cfg_off["gains"]["modes"] = ["9d"]
         model_dir = out / "folds" / f"fold{k}" / "models_ransac_off"
         run_training(cfg_off, data_dir=index.root, trials=",".join(train), out=model_dir, cv=False, verbose=False)
         m_off = CompiledModels.from_bundle(load_bundle(model_dir))
-        p_off = {n: m_off.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs)
-                 for n in train + test}
-        s, _ = learn_gains([loaded[n] for n in train], [p_off[n] for n in train], m_off.class_names,
-                           m_off.static_state, search=cfg.gains, start=gains9, jobs=jobs)
+        s = load_gains(model_dir)
+        p_off = {n: m_off.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
         for n in test:
             t = loaded[n]
             o = TogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=p_off[n])

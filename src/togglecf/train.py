@@ -35,7 +35,8 @@ __all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "pipelines" / "configs" / "default.toml"
 _RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all"}
-_SECTIONS = ("run", "labels", "features", "classifier", "regressor")
+_SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
+_GAIN_KEYS = ("learn", "modes")
 
 
 def load_config(source=None) -> dict:
@@ -57,6 +58,9 @@ def load_config(source=None) -> dict:
     cfg["run"] = {**_RUN_DEFAULTS, **cfg["run"]}
     LabelSettings.from_dict({**cfg["labels"], "seed": cfg["run"]["seed"]})  # validate early
     FeatureSettings.from_dict(cfg["features"])
+    from .gains import GainSearch
+
+    GainSearch.from_dict({k: v for k, v in cfg["gains"].items() if k not in _GAIN_KEYS})  # validate early
     for sec, cls in (("classifier", MotionClassifier), ("regressor", NoiseRegressor)):
         allowed = set(cls._param_names()) - {"nthread", "seed", "target"}
         unknown = sorted(set(cfg[sec]) - allowed)
@@ -334,6 +338,15 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
     atomic_write_text(out_dir / "feature_importances.csv", _importances(clf, regs, schema))
     if cv:
         atomic_write_text(out_dir / "cv_table.txt", format_cv_table(result["cv"], class_names) + "\n")
+    gcfg = cfg["gains"]
+    if gcfg.get("learn", True):  # the toggling filter's gains, on the same training trials
+        from .gains import GainSearch, learn_and_save_gains
+
+        t0 = time.perf_counter()
+        search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in _GAIN_KEYS})
+        learn_and_save_gains(out_dir, [index.load(n) for n in names], search, tuple(gcfg.get("modes", ("9d", "6d"))),
+                             jobs=int(run["nthread"]), log=log)
+        timing["gains_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     log(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "
         f"CV {timing.get('cv_s', 0.0):.1f} s, final fit {timing['final_fit_s']:.1f} s)")

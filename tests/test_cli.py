@@ -75,6 +75,7 @@ def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, cap
     assert main(["train", "--config", str(cfg), "--trials", "02,24,29", "--out", str(models), *data]) == 0
     gains = json.loads((models / "gains.json").read_text())
     assert set(gains) >= {"9d", "6d", "feature_schema_hash"}
+    assert gains["9d"]["predictions"].startswith("out-of-fold")  # learned on CV models that never saw the trial
     assert gains["9d"]["trials"] == ["02_undisturbed_slow_rotation_B", "24_disturbed_tapping_A",
                                      "29_disturbed_stationary_magnet_B"]
     out = tmp_path / "eval"

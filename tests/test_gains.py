@@ -1,6 +1,7 @@
 """Gain learning finds what the physics says: trust the accelerometer at rest, not during
 linear-acceleration bursts, and learn the gyro bias at rest."""
 import numpy as np
+import pytest
 
 from togglecf import quaternion as quat
 from togglecf.gains import GainSearch, learn_gains, mean_total_rmse
@@ -49,3 +50,15 @@ def test_parallel_objective_equals_serial():
     serial = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
     parallel = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, jobs=2)
     assert serial == parallel  # same settings and the same objective values, bit for bit
+
+
+def test_fused_objective_equals_broad_metric(rng):
+    from togglecf.evaluation import trial_errors
+    from togglecf.gains import _total_rmse_deg
+    from conftest import random_quats
+    q_ref = random_quats(rng, 3000)
+    q_est = quat.multiply(quat.from_rotvec(0.05 * rng.standard_normal((3000, 3))), q_ref) * -2.0  # scaled, flipped
+    q_ref[::17] = np.nan
+    mov = rng.random(3000) > 0.3
+    expected = trial_errors(q_est, q_ref, mov)["total"]
+    assert _total_rmse_deg(q_est, q_ref, mov) == pytest.approx(expected, rel=1e-12)

@@ -126,3 +126,19 @@ def test_settings_validation():
         TogglingFilter(FS, static_state="rest")
     with pytest.raises(ValueError, match=r"predictions: expected shape \(10, 8\)"):
         TogglingFilter(FS).update_batch(np.zeros((10, 3)), np.ones((10, 3)), np.ones((10, 3)), predictions=np.zeros((10, 7)))
+
+
+def test_noise_weights_scale_the_removed_noise():
+    n = int(10 * FS)
+    q_true = static_trajectory([0, 30, 0], n)
+    tr = imu_from_orientation(q_true, FS, lin_acc_earth=np.tile([2.0, 0.0, 0.0], (n, 1)))
+    eta_a = quat.rotate(quat.conjugate(q_true[0]), [2.0, 0.0, 0.0])
+    pred = one_hot(n, 0, eta_a=eta_a)
+    out = {}
+    for w in (0.0, 0.5, 1.0):
+        f = TogglingFilter(FS, alpha_acc=(0.05, 0.05), noise_weight_acc=w, use_mag=False)  # 6D: tilt only
+        f.set_quat(q_true[0])
+        out[w] = err_deg(f.update_batch(tr.gyr, tr.acc, None, predictions=pred).quat[-1], q_true[-1])
+    # 2 m/s² left over tilts by atan(2/9.81) = 11.5°, half of it by atan(1/9.81) = 5.8°, none by 0
+    # (heading moves only at second order in 6D: 0.2° tolerance)
+    assert out[0.0] == pytest.approx(11.5, abs=0.2) and out[0.5] == pytest.approx(5.8, abs=0.2) and out[1.0] < 1e-6

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 
 from .evaluation import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 from .filters.toggling import TogglingFilter, TogglingSettings
@@ -31,6 +32,7 @@ class GainSearch:
         gamma: grid of the output blend weight.
         bias_gain: grid of the rest-bias low-pass gain.
         mag_disturbance_scale: grid of σ_m (0 = off).
+        noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise.
         sweeps: passes over all parameters.
     """
 
@@ -38,6 +40,8 @@ class GainSearch:
     gamma: tuple = (0.3, 0.6, 1.0)
     bias_gain: tuple = (0.0, 0.0003, 0.001, 0.003)
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
+    noise_weight_acc: tuple = (0.0, 0.5, 1.0)
+    noise_weight_mag: tuple = (0.0, 0.5, 1.0)
     sweeps: int = 2
 
     @classmethod
@@ -54,7 +58,29 @@ def _trial_total(t, pred, settings, use_mag) -> float:
     q = f.update_batch(t.gyr, t.acc, t.mag if use_mag else None, predictions=pred).quat
     if not use_mag:
         q = remove_heading_offset(q, t.opt_quat, t.movement)
-    return rmse_deg(error_angles_rad(error_quaternion(q, t.opt_quat))["total"], t.movement)
+        return rmse_deg(error_angles_rad(error_quaternion(q, t.opt_quat))["total"], t.movement)
+    return _total_rmse_deg(q, t.opt_quat, t.movement)
+
+
+@njit(cache=True)
+def _total_rmse_deg(q_est, q_ref, movement):
+    """BROAD's total RMSE [deg] fused in one loop (the objective is evaluated thousands of times);
+    equal to ``evaluation.trial_errors(...)["total"]`` (test)."""
+    s = 0.0
+    k = 0
+    for i in range(q_est.shape[0]):
+        if not movement[i]:
+            continue
+        a, b = q_est[i], q_ref[i]
+        if not (math.isfinite(b[0]) and math.isfinite(a[0])):
+            continue
+        na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3])
+        nb = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
+        w = abs(a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]) / (na * nb)  # |w| of q_est ⊗ q_ref*
+        e = 2.0 * math.acos(min(1.0, w))
+        s += e * e
+        k += 1
+    return math.degrees(math.sqrt(s / k)) if k else math.nan
 
 
 def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True, pool=None) -> float:
@@ -104,7 +130,7 @@ def _candidates(settings: TogglingSettings, search: GainSearch):
                 g[s] = a
                 vals.append((a, {name: tuple(g)}))
             yield f"{name}[{settings.states[s]}]", vals
-    for name in ("gamma", "bias_gain", "mag_disturbance_scale"):
+    for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "mag_disturbance_scale"):
         yield name, [(v, {name: v}) for v in getattr(search, name)]
 
 
@@ -155,7 +181,8 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
 GAINS_FILE = "gains.json"
 
 
-def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True):
+def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True,
+               predictions: str = "in-sample"):
     """Write ``gains.json`` beside the models (atomically): the learned settings, the trials
     they were learned on, the objective history and the models' schema hash they belong to."""
     import json
@@ -171,7 +198,7 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     doc = json.loads(path.read_text()) if path.is_file() else {}
     doc["feature_schema_hash"] = meta["feature_schema"]["hash"]
     doc[key] = {"settings": asdict(settings), "trials": [getattr(t, "name", t) for t in trials],
-                "objective": "mean total RMSE [deg] over the trials (BROAD)",
+                "objective": "mean total RMSE [deg] over the trials (BROAD)", "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)
     return path
@@ -199,16 +226,24 @@ def load_gains(model_dir, use_mag: bool = True) -> TogglingSettings:
     return TogglingSettings(**s)
 
 
-def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=print) -> dict:
-    """After ``togglecf train``: learn the gains of each mode on the training ``trials`` with the
-    models of ``model_dir`` and store them in its ``gains.json``. Returns mode -> settings."""
+def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=print,
+                         predictions=None) -> dict:
+    """After ``togglecf train``: learn the gains of each mode on the training ``trials`` and store
+    them in ``model_dir/gains.json``. Returns mode -> settings.
+
+    ``predictions``: per-trial ``(N, S + 6)`` *out-of-fold* predictions (from the CV models, which
+    never saw that trial). Without them the final models' in-sample predictions are used; they are
+    over-confident (the regressors look near-perfect on their own training data), so gains learned
+    on them trust the models too much: the study measured it (see README)."""
     import time
 
     from .filters.toggling import CompiledModels
     from .models import load_bundle
 
     models = CompiledModels.from_bundle(load_bundle(model_dir))
-    preds = [models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in trials]
+    source = "out-of-fold (CV models that never saw the trial)" if predictions is not None else "in-sample"
+    preds = predictions if predictions is not None else [models.predict_samples(t.gyr, t.acc, t.mag, t.fs)
+                                                          for t in trials]
     out = {}
     for mode in modes:
         if mode not in ("9d", "6d"):
@@ -216,9 +251,10 @@ def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d
         t0 = time.perf_counter()
         settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=mode == "9d",
                                      search=search, jobs=jobs)
-        save_gains(model_dir, settings, trials, hist, use_mag=mode == "9d")
-        log(f"gains {mode.upper()}: mean total RMSE on the training trials {hist[0][2]:.3f}° -> {hist[-1][2]:.3f}° "
+        save_gains(model_dir, settings, trials, hist, use_mag=mode == "9d", predictions=source)
+        log(f"gains {mode.upper()} ({source} predictions): mean total RMSE on the training trials {hist[0][2]:.3f}° -> {hist[-1][2]:.3f}° "
             f"in {time.perf_counter() - t0:.0f} s: acc {settings.alpha_acc}, mag {settings.alpha_mag}, "
-            f"gamma {settings.gamma}, bias {settings.bias_gain}, σ_m {settings.mag_disturbance_scale}")
+            f"gamma {settings.gamma}, bias {settings.bias_gain}, σ_m {settings.mag_disturbance_scale}, "
+            f"noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")
         out[mode] = settings
     return out

@@ -46,6 +46,8 @@ class StudyConfig:
 
     Attributes:
         folds: number of trial folds.
+        inner_folds: CV folds inside each training set; their out-of-fold predictions are what
+            the gains are learned on (as ``togglecf train`` does).
         train_config: path of the ``togglecf train`` TOML used in every fold.
         baselines: filter name -> parameter grid (name -> values), 9D.
         baselines_6d: the same for the 6D comparison.
@@ -56,6 +58,7 @@ class StudyConfig:
     """
 
     folds: int = 5
+    inner_folds: int = 3
     train_config: str = ""
     baselines: dict = field(default_factory=dict)
     baselines_6d: dict = field(default_factory=dict)
@@ -69,7 +72,7 @@ def load_study_config(path=None) -> StudyConfig:
     with open(path, "rb") as f:
         raw = tomllib.load(f)
     st = raw.get("study", {})
-    unknown = set(st) - {"folds", "train_config", "ablations", "jobs"}
+    unknown = set(st) - {"folds", "inner_folds", "train_config", "ablations", "jobs"}
     if unknown:
         raise ValueError(f"{path}: [study] unknown key(s) {sorted(unknown)}")
     train_config = st.get("train_config", "default.toml")
@@ -88,7 +91,7 @@ def load_study_config(path=None) -> StudyConfig:
     bad = set(ablations) - set(ABLATIONS)
     if bad:
         raise ValueError(f"{path}: unknown ablation(s) {sorted(bad)}; known: {list(ABLATIONS)}")
-    return StudyConfig(folds=int(st.get("folds", 5)), train_config=train_config, baselines=grids("baselines"),
+    return StudyConfig(folds=int(st.get("folds", 5)), inner_folds=int(st.get("inner_folds", 3)), train_config=train_config, baselines=grids("baselines"),
                        baselines_6d=grids("baselines_6d"), gains=search, ablations=ablations,
                        jobs=int(st.get("jobs", 0)))
 
@@ -171,24 +174,27 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     fold_info = []
     train_cfg = load_config(cfg.train_config)
     train_cfg["gains"].update(learn=True, modes=["9d", "6d"] if "6d" in cfg.ablations else ["9d"])
+    train_cfg["run"]["cv_folds"] = cfg.inner_folds
     for k, test in enumerate(folds):
         train = [n for n in names if n not in test]
         _log(f"fold {k + 1}/{len(folds)}: train on {len(train)} trials, test on {', '.join(test)}")
         info = {"fold": k, "train": train, "test": test}
         t0 = time.perf_counter()
         model_dir = out / "folds" / f"fold{k}" / "models"
-        res = run_training(train_cfg, data_dir=index.root, trials=",".join(train), out=model_dir, cv=False,
-                           verbose=False)  # models, then the gains on the same training trials
+        res = run_training(train_cfg, data_dir=index.root, trials=",".join(train), out=model_dir, cv=True,
+                           verbose=False)  # inner CV, models, then the gains on the CV's out-of-fold predictions
         models = CompiledModels.from_bundle(load_bundle(model_dir))
         gains9 = load_gains(model_dir, use_mag=True)
-        info["train_s"] = res["timing"]["final_fit_s"] + res["timing"]["dataset_s"]
+        info["train_s"] = res["timing"]["final_fit_s"] + res["timing"]["dataset_s"] + res["timing"].get("cv_s", 0.0)
         info["gains_s"] = res["timing"].get("gains_s", 0.0)
         hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
         info["gains"] = {"alpha_acc": gains9.alpha_acc, "alpha_mag": gains9.alpha_mag, "gamma": gains9.gamma,
                          "bias_gain": gains9.bias_gain, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                          "train_objective_deg": hist[-1][2]}
         _log(f"  models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}")
-        preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in names}
+        # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
+        preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
+        preds.update(res["oof_predictions"])
         for n in test:  # the headline filter: models compiled into the loop
             t = loaded[n]
             f = ModelTogglingFilter(t.fs, gains9, models=models)
@@ -284,8 +290,9 @@ def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, i
         cfg_off = {s: dict(v) for s, v in train_cfg.items()}
         cfg_off["labels"]["ransac"] = False
         cfg_off["gains"]["modes"] = ["9d"]
+        cfg_off["run"]["cv_folds"] = cfg.inner_folds
         model_dir = out / "folds" / f"fold{k}" / "models_ransac_off"
-        run_training(cfg_off, data_dir=index.root, trials=",".join(train), out=model_dir, cv=False, verbose=False)
+        run_training(cfg_off, data_dir=index.root, trials=",".join(train), out=model_dir, cv=True, verbose=False)
         m_off = CompiledModels.from_bundle(load_bundle(model_dir))
         s = load_gains(model_dir)
         p_off = {n: m_off.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}

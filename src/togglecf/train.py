@@ -27,7 +27,9 @@ from .data import DatasetIndex, resolve_data_dir
 from .features import FeatureSettings, feature_schema, trial_features, window_length
 from .io import atomic_write_text
 from .labels import LabelSettings, make_targets, state_names
-from .models import MotionClassifier, NoiseRegressor, classification_metrics, regression_metrics, save_bundle
+from .filters.toggling import CompiledModels, hold_predictions
+from .models import (ModelBundle, MotionClassifier, NoiseRegressor, classification_metrics, regression_metrics,
+                     save_bundle)
 from .progress import progress
 
 __all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make_folds", "cross_validate",
@@ -175,10 +177,12 @@ def _evaluate(clf, regs, data: WindowData, train_rows, test_rows, schema, n_clas
 
 
 def cross_validate(cfg, data: WindowData, schema, class_names):
-    """Per-fold and pooled CV metrics; ``folds`` records each fold's train/test trial names."""
+    """Per-fold and pooled CV metrics; ``folds`` records each fold's train/test trial names.
+    Also returns the out-of-fold predictions: trial -> (window ends, prediction rows)."""
     n_classes = len(class_names)
     folds = make_folds(data.group, len(data.trials), cfg["run"]["cv_folds"])
     out = {"folds": [], "per_trial": {}}
+    oof = {}
     pooled = {"y": [], "proba": [], "const": [], "acc": [], "acc_t": [], "mag": [], "mag_t": []}
     for i, (train_g, test_g) in enumerate(progress(folds, desc="cross-validation", unit="fold")):
         train_rows = np.flatnonzero(np.isin(data.group, train_g) & data.train_mask)
@@ -186,6 +190,10 @@ def cross_validate(cfg, data: WindowData, schema, class_names):
         t0 = time.perf_counter()
         clf, regs = _fit_all(cfg, data, train_rows, schema, class_names)
         res, preds = _evaluate(clf, regs, data, train_rows, test_rows, schema, n_classes)
+        oof_models = CompiledModels.from_bundle(ModelBundle(clf, regs, schema, {}))
+        for g in test_g:  # out-of-fold predictions on every window of the held-out trials (for the gains)
+            rows_g = np.flatnonzero(data.group == g)
+            oof[data.trials[g]] = (data.end[rows_g], oof_models.predict_windows(data.X[rows_g]))
         res.update(fold=i, test_trials=[data.trials[g] for g in test_g],
                    train_trials=[data.trials[g] for g in train_g], n_train=len(train_rows),
                    n_test=len(test_rows), seconds=time.perf_counter() - t0)
@@ -215,7 +223,7 @@ def cross_validate(cfg, data: WindowData, schema, class_names):
     for t in ("acc", "mag"):
         out["overall"][t] = regression_metrics(P[f"{t}_t"], P[t])
         out["overall"][f"{t}_zero"] = regression_metrics(P[f"{t}_t"], np.zeros_like(P[f"{t}_t"]))
-    return out
+    return out, oof
 
 
 def _short(name: str) -> str:
@@ -312,9 +320,10 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
     log("RANSAC inlier fraction per trial (" + ("applied" if label_settings.ransac else "not applied") + "): "
         + ", ".join(f"{_short(n)} {p['inlier_fraction']:.4f}" for n, p in data.per_trial.items()))
     result = {"out": str(out_dir), "timing": timing}
+    oof = None
     if cv:
         t0 = time.perf_counter()
-        result["cv"] = cross_validate(cfg, data, schema, class_names)
+        result["cv"], oof = cross_validate(cfg, data, schema, class_names)
         timing["cv_s"] = time.perf_counter() - t0
         if verbose:
             print(format_cv_table(result["cv"], class_names))
@@ -344,8 +353,12 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
 
         t0 = time.perf_counter()
         search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in _GAIN_KEYS})
+        preds = None
+        if oof is not None:  # every trial's predictions from the CV models that did not train on it
+            preds = [hold_predictions(*oof[n], data.per_trial[n]["n_samples"]) for n in names]
+            result["oof_predictions"] = dict(zip(names, preds))
         learn_and_save_gains(out_dir, [index.load(n) for n in names], search, tuple(gcfg.get("modes", ("9d", "6d"))),
-                             jobs=int(run["nthread"]), log=log)
+                             jobs=int(run["nthread"]), log=log, predictions=preds)
         timing["gains_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     log(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "

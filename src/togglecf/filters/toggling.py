@@ -7,7 +7,8 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
 2. gyro propagation         Δq = exp((ω − b) Δt / 2),  q_g = q ⊗ Δq
    the predicted vectors follow the sensor: v ← Δq* ⊗ v ⊗ Δq   (R_gᵀ v: earth-fixed
    directions rotate opposite to the body)
-3. noise removal            a_d = a − η̂_a,  m_d = m − η̂_m
+3. noise removal            a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1]: a
+   regressor that does not generalise to a disturbance can be switched down)
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
    the class probabilities; a hard toggle when the probabilities are one-hot); the
    magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
@@ -54,6 +55,7 @@ class TogglingSettings(FilterSettings):
         bias_gain: per-sample low-pass gain of the bias estimate at p_static = 1 (0 disables).
         bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
         mag_disturbance_scale: σ_m [µT] of step 4; 0 turns the disturbance scaling off.
+        noise_weight_acc, noise_weight_mag: w_a, w_m of step 3, in [0, 1].
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models.
     """
@@ -66,6 +68,8 @@ class TogglingSettings(FilterSettings):
     bias_gain: float = 0.002
     bias_gate: float = 0.05
     mag_disturbance_scale: float = 0.0
+    noise_weight_acc: float = 1.0
+    noise_weight_mag: float = 1.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -82,6 +86,8 @@ class TogglingSettings(FilterSettings):
             raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
         if self.static_state not in self.states:
             raise ValueError(f"static_state {self.static_state!r} is not one of {self.states}")
+        if not (0.0 <= self.noise_weight_acc <= 1.0 and 0.0 <= self.noise_weight_mag <= 1.0):
+            raise ValueError("noise weights must be in [0, 1]")
         if self.mag_disturbance_scale < 0.0:
             raise ValueError(f"mag_disturbance_scale must be >= 0 µT, got {self.mag_disturbance_scale}")
         if not (0.0 <= self.bias_gain <= 1.0 and self.bias_gate >= 0.0):
@@ -119,14 +125,14 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     use_mag, max_dt, ns = params[0] > 0.5, params[1], int(params[2])
     o = 3 + 2 * ns
     gamma, bias_gain, static_idx, bias_gate = params[o], params[o + 1], int(params[o + 2]), params[o + 3]
-    mag_scale = params[o + 4]
+    mag_scale, w_a, w_m = params[o + 4], params[o + 5], params[o + 6]
     eta_ok = True
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
             eta_ok = False
     if eta_ok:  # step 3
-        a_d = (acc[0] - pred[ns], acc[1] - pred[ns + 1], acc[2] - pred[ns + 2])
-        m_d = (mag[0] - pred[ns + 3], mag[1] - pred[ns + 4], mag[2] - pred[ns + 5])
+        a_d = (acc[0] - w_a * pred[ns], acc[1] - w_a * pred[ns + 1], acc[2] - w_a * pred[ns + 2])
+        m_d = (mag[0] - w_m * pred[ns + 3], mag[1] - w_m * pred[ns + 4], mag[2] - w_m * pred[ns + 5])
     else:
         a_d = (acc[0], acc[1], acc[2])
         m_d = (mag[0], mag[1], mag[2])
@@ -211,7 +217,8 @@ class TogglingFilter(OrientationFilter):
     def _coefficients(self) -> np.ndarray:
         s = self.settings
         return np.array([len(s.states), *s.alpha_acc, *s.alpha_mag, s.gamma, s.bias_gain,
-                         s.states.index(s.static_state), s.bias_gate, s.mag_disturbance_scale], dtype=np.float64)
+                         s.states.index(s.static_state), s.bias_gate, s.mag_disturbance_scale,
+                         s.noise_weight_acc, s.noise_weight_mag], dtype=np.float64)
 
     @property
     def n_predictions(self) -> int:
@@ -287,17 +294,30 @@ class CompiledModels:
         from ..features import compute_features
 
         n = np.shape(gyr)[0]
-        pred = np.full((n, self.forest.n_outputs), np.nan)
         if n < window_length_samples(fs, self.feature_settings):
-            return pred
+            return np.full((n, self.forest.n_outputs), np.nan)
         X, ends = compute_features(gyr, acc, mag, fs, self.feature_settings)
+        return hold_predictions(ends, self.predict_windows(X), n)
+
+    def predict_windows(self, X) -> np.ndarray:
+        """Prediction rows ``(n, S + 6)`` (class probabilities, η̂_a, η̂_m) of feature rows ``X``."""
         m = self.forest.predict_margin(X)
         k = len(self.class_names)
         e = np.exp(m[:, :k] - m[:, :k].max(axis=1, keepdims=True))
         m[:, :k] = e / e.sum(axis=1, keepdims=True)
-        idx = np.searchsorted(ends, np.arange(n), side="right") - 1  # last window end <= sample
-        pred[idx >= 0] = m[idx[idx >= 0]]
-        return pred
+        return m
+
+
+def hold_predictions(ends, values, n: int) -> np.ndarray:
+    """Per-sample predictions ``(n, k)``: the row of the last window end ``<= sample`` (as the
+    in-loop filter holds them between hops); NaN before the first window end."""
+    ends = np.asarray(ends)
+    order = np.argsort(ends, kind="stable")
+    ends, values = ends[order], np.asarray(values)[order]
+    pred = np.full((n, values.shape[1]), np.nan)
+    idx = np.searchsorted(ends, np.arange(n), side="right") - 1
+    pred[idx >= 0] = values[idx[idx >= 0]]
+    return pred
 
 
 def window_length_samples(fs, feature_settings) -> int:

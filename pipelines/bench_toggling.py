@@ -58,8 +58,9 @@ def main(argv=None):
     us = {k: 1e6 * best_time(f, args.repeats) / n for k, f in runs.items()}
     ref = us["vqf (C++ updateBatch)"]
     f = probe.models.forest
-    print(f"trial {t.name}: {n} samples; models: {len(f.roots)} trees, {f.n_nodes} nodes, "
-          f"prediction every {probe.hop} samples; best of {args.repeats}")
+    print(f"trial {t.name}: {n} samples; models: {len(f.roots)} trees ({len(probe._forest.roots)} walked: outputs "
+          f"with zero noise weight are skipped), {f.n_nodes} nodes, a prediction every {probe.hop} samples; "
+          f"best of {args.repeats}")
     print(f"{'filter':36s} {'µs/sample':>10s} {'÷ VQF':>7s}")
     for k, v in us.items():
         print(f"{k:36s} {v:10.3f} {v / ref:7.2f}")

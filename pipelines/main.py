@@ -1,13 +1,16 @@
-"""The README's main job: evaluate on every BROAD trial found (downloading BROAD first if absent).
+"""The README's main job (`make run`): the held-out study on every BROAD trial found.
 
-Run with ``make run``. Writes reports/<filter>/per_trial.csv, per_group.csv, results.json.
+Finds BROAD (downloading it into ./data/broad first when it is nowhere to be found, and
+saying so), then runs pipelines/run_all.py: per fold, train the models and learn the gains on
+the training trials, evaluate the toggling CF and all baselines on the held-out trials, and
+write reports/study/ (summary.md, tables, plots).
 """
 import sys
 from pathlib import Path
 
-from togglecf.cli import main
 from togglecf.data import DataNotFoundError, resolve_data_dir
 from togglecf.download import download_broad
+from togglecf.study import load_study_config, run_study
 
 DEFAULT_DOWNLOAD_DIR = Path("data/broad")
 
@@ -21,5 +24,4 @@ def data_dir() -> Path:
 
 
 if __name__ == "__main__":
-    data = str(data_dir())
-    sys.exit(main(["evaluate", "--filter", "cf", "--data", data, "--out", "reports/cf"]))
+    run_study(load_study_config(), data_dir=data_dir(), out_dir="reports/study")

@@ -76,3 +76,15 @@ def test_states_must_match_model_classes(bundle):
     with pytest.raises(ValueError, match="differ from the model's classes"):
         ModelTogglingFilter(285.7, models=models, states=("a", "b"), alpha_acc=(0.1, 0.1), alpha_mag=(0.1, 0.1),
                             static_state="a")
+
+
+def test_trees_of_zero_weighted_outputs_are_skipped_without_changing_the_result(bundle, segment):
+    t = segment.slice(0, 4000)
+    models = CompiledModels.from_bundle(bundle)
+    full = ModelTogglingFilter(t.fs, models=models, **GAINS, noise_weight_acc=0.0)
+    assert len(full._forest.roots) < len(models.forest.roots)  # the acc regressors' trees are dropped
+    ref = ModelTogglingFilter(t.fs, models=models, **GAINS, noise_weight_acc=0.0)
+    ref._forest = models.forest  # walk every tree
+    a = full.update_batch(t.gyr, t.acc, t.mag)
+    b = ref.update_batch(t.gyr, t.acc, t.mag)
+    assert np.array_equal(a.quat, b.quat)

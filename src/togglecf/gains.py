@@ -31,6 +31,7 @@ class GainSearch:
         alpha: grid of every per-state acc and mag gain.
         gamma: grid of the output blend weight.
         bias_gain: grid of the rest-bias low-pass gain.
+        bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
         mag_disturbance_scale: grid of σ_m (0 = off).
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise.
         sweeps: passes over all parameters.
@@ -39,6 +40,7 @@ class GainSearch:
     alpha: tuple = _ALPHA_GRID
     gamma: tuple = (0.3, 0.6, 1.0)
     bias_gain: tuple = (0.0, 0.0003, 0.001, 0.003)
+    bias_gate: tuple = (0.02, 0.05)
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
     noise_weight_acc: tuple = (0.0, 0.5, 1.0)
     noise_weight_mag: tuple = (0.0, 0.5, 1.0)
@@ -130,7 +132,7 @@ def _candidates(settings: TogglingSettings, search: GainSearch):
                 g[s] = a
                 vals.append((a, {name: tuple(g)}))
             yield f"{name}[{settings.states[s]}]", vals
-    for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "mag_disturbance_scale"):
+    for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "bias_gate", "mag_disturbance_scale"):
         yield name, [(v, {name: v}) for v in getattr(search, name)]
 
 

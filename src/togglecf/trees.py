@@ -135,6 +135,14 @@ class FlatForest:
         return cls(**arrays, base_margin=np.concatenate([f.base_margin for f in forests]), link="identity",
                    n_features=forests[0].n_features)
 
+    def without_outputs(self, outputs) -> "FlatForest":
+        """The same forest with the trees of ``outputs`` not walked (those outputs then stay at
+        their base margin). For outputs a caller multiplies by zero: their trees cost time only."""
+        keep = ~np.isin(self.tree_group, np.asarray(list(outputs), np.int32))
+        return FlatForest(self.feature, self.threshold, self.left, self.right, self.default_left, self.value,
+                          np.ascontiguousarray(self.roots[keep]), np.ascontiguousarray(self.tree_group[keep]),
+                          self.base_margin.copy(), self.link, self.n_features)
+
     def _base_margin_from(self, booster) -> np.ndarray:
         """The booster's margin for an all-missing row minus our leaf sum for it (version-proof)."""
         import xgboost as xgb

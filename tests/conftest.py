@@ -4,6 +4,12 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# CI: the same examples every run (a failure is reproducible); locally hypothesis explores anew
+settings.register_profile("ci", derandomize=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 from togglecf.data import DataNotFoundError, DatasetIndex, resolve_data_dir
 
@@ -34,3 +40,24 @@ def rng():
 def random_quats(rng, n):
     q = rng.standard_normal((n, 4))
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+#: A `togglecf train` config small enough for tests (seconds, not minutes) on a few real trials.
+TINY_TRAIN_TOML = """
+[run]
+cv_folds = 2
+[features]
+hop_s = 0.1
+[classifier]
+n_estimators = 8
+max_depth = 3
+[regressor]
+n_estimators = 4
+max_depth = 3
+[gains]
+alpha = [0.0002, 0.002]
+gamma = [1.0]
+bias_gain = [0.0, 0.001]
+mag_disturbance_scale = [0.0]
+sweeps = 1
+"""

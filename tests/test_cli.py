@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from togglecf.cli import main
+from conftest import TINY_TRAIN_TOML
 from test_data import make_broad_dir
 
 
@@ -46,30 +47,13 @@ def test_evaluate_and_tune_on_real_trials(broad_index, tmp_path, capsys):
     assert "TAGP of cf: {'alpha':" in out
 
 
-TINY_TRAIN = """
-[run]
-cv_folds = 2
-[features]
-hop_s = 0.1
-[classifier]
-n_estimators = 8
-max_depth = 3
-[regressor]
-n_estimators = 4
-max_depth = 3
-[gains]
-alpha = [0.0002, 0.002]
-gamma = [1.0]
-bias_gain = [0.0, 0.001]
-mag_disturbance_scale = [0.0]
-sweeps = 1
-"""
+
 
 
 @pytest.mark.broad
 def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, capsys):
     cfg = tmp_path / "tiny.toml"
-    cfg.write_text(TINY_TRAIN)
+    cfg.write_text(TINY_TRAIN_TOML)
     models = tmp_path / "models"
     data = ["--data", str(broad_index.root)]
     assert main(["train", "--config", str(cfg), "--trials", "02,24,29", "--out", str(models), *data]) == 0

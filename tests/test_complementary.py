@@ -144,3 +144,15 @@ def test_real_trial_accuracy(broad_index):
         out = ComplementaryFilter(t.fs).update_batch(t.gyr, t.acc, t.mag)
         e = trial_errors(out.quat, t.opt_quat, t.movement)
         assert e["total"] < 8.0, (name, e)
+
+
+def test_saturated_gyro_is_not_integrated():
+    """A reading at the ±2000 °/s full scale is saturated: the true rate is unknown, so the
+    sample is skipped like a NaN (policy in filters/base.py), not integrated as a huge turn."""
+    n = 200
+    tr = imu_from_orientation(static_trajectory([10, 20, 30], n), FS)
+    g = tr.gyr.copy()
+    g[100] = [35.0, -35.0, 35.0]
+    f = ComplementaryFilter(FS, alpha=0.0)
+    out = f.update_batch(g, tr.acc, tr.mag)
+    assert err_deg(out.quat[-1], tr.opt_quat[-1]) < 1e-9

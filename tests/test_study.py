@@ -7,29 +7,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from conftest import TINY_TRAIN_TOML
 from togglecf.runner import evaluate_trials
 from togglecf.study import load_study_config, run_study, trial_folds
 
 pytestmark = pytest.mark.broad
 
-TRAIN = """
-[run]
-nthread = 2
-[features]
-hop_s = 0.1
-[classifier]
-n_estimators = 10
-max_depth = 3
-[regressor]
-n_estimators = 5
-max_depth = 3
-[gains]
-alpha = [0.0002, 0.002]
-gamma = [1.0]
-bias_gain = [0.0, 0.001]
-mag_disturbance_scale = [0.0]
-sweeps = 1
-"""
+TRAIN = TINY_TRAIN_TOML
 
 STUDY = """
 [study]

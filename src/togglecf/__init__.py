@@ -4,4 +4,26 @@ Conventions (see ``togglecf.quaternion``): quaternions ``[w, x, y, z]``, Hamilto
 sensor -> earth, earth frame ENU; SI units (rad/s, m/s², µT); time series ``(N, 3)``/``(N, 4)``
 float64, one sample a row; the sampling rate is always passed explicitly.
 """
+import hashlib as _hashlib
+import os as _os
+from pathlib import Path as _Path
+
 __version__ = "0.1.0"
+
+
+def _numba_cache_dir() -> str:
+    """numba's on-disk cache checks only the timestamp of a kernel's own file, not of the
+    functions it inlines from other modules: after an edit of ``filters/base.py`` a cached
+    ``ekf_step`` would run the old code. Keying the cache directory on a hash of every source
+    file of the package makes any change start a fresh cache."""
+    root = _Path(__file__).resolve().parent
+    h = _hashlib.sha1()
+    for p in sorted(root.rglob("*.py")):
+        h.update(p.relative_to(root).as_posix().encode())
+        h.update(p.read_bytes())
+    base = _os.environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
+    return _os.path.join(base, "togglecf", "numba", f"{__version__}-{h.hexdigest()[:16]}")
+
+
+if "NUMBA_CACHE_DIR" not in _os.environ:  # must be set before numba is first imported
+    _os.environ["NUMBA_CACHE_DIR"] = _numba_cache_dir()

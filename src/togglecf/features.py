@@ -37,6 +37,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.signal import lfilter
 
 from .data import GRAVITY
+from .io import check_keys
 
 __all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureSchema", "SchemaMismatchError", "feature_schema",
            "window_end_indices", "window_length", "hop_length", "per_sample_channels", "compute_features",
@@ -72,11 +73,7 @@ class FeatureSettings:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureSettings":
-        known = set(cls.__dataclass_fields__)
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"unknown feature setting(s) {bad}; known: {sorted(known)}")
-        return cls(**{k: float(v) for k, v in d.items()})
+        return cls(**{k: float(v) for k, v in check_keys(cls, d, "feature").items()})
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from numba import njit
 
 from .evaluation import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 from .filters.toggling import TogglingFilter, TogglingSettings
+from .io import check_keys
 from .progress import progress
 
 __all__ = ["GainSearch", "learn_gains", "mean_total_rmse"]
@@ -48,11 +49,8 @@ class GainSearch:
 
     @classmethod
     def from_dict(cls, d: dict) -> "GainSearch":
-        known = set(cls.__dataclass_fields__)
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"unknown gain-search setting(s) {bad}; known: {sorted(known)}")
-        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v for k, v in d.items()})
+        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
+                      for k, v in check_keys(cls, d, "gain-search").items()})
 
 
 def _trial_total(t, pred, settings, use_mag) -> float:

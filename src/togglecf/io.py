@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "to_jsonable"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "to_jsonable", "check_keys"]
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
@@ -60,3 +60,13 @@ def to_jsonable(obj):
 
 def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False) + "\n")
+
+
+def check_keys(cls, d: dict, what: str) -> dict:
+    """``d`` unchanged if all its keys are fields of dataclass ``cls``; else a ``ValueError``
+    naming the unknown keys and the known ones (config sections read from TOML)."""
+    known = set(cls.__dataclass_fields__)
+    bad = sorted(set(d) - known)
+    if bad:
+        raise ValueError(f"unknown {what} setting(s) {bad}; known: {sorted(known)}")
+    return d

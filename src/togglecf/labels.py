@@ -46,6 +46,7 @@ from scipy.signal import savgol_filter
 
 from . import quaternion as quat
 from .data import GRAVITY, Trial
+from .io import check_keys
 
 __all__ = [
     "STATE_NAMES", "BINARY_NAMES", "LabelSettings", "Targets", "bridge_gaps", "angular_velocity",
@@ -98,11 +99,7 @@ class LabelSettings:
 
     @classmethod
     def from_dict(cls, d: dict) -> "LabelSettings":
-        known = set(cls.__dataclass_fields__)
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"unknown label setting(s) {bad}; known: {sorted(known)}")
-        return cls(**d)
+        return cls(**check_keys(cls, d, "label"))
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -16,7 +16,8 @@ filter specific. Parameter layout: ``params[0]`` 1.0 for 9D (magnetometer used),
 
 Bad samples (documented policy, the same for all filters):
 
-* non-finite gyro, or Δt that is non-finite, <= 0 or > ``max_dt``: no gyro propagation;
+* non-finite gyro, a gyro axis at or beyond ``GYRO_FULL_SCALE`` (a saturated reading), or Δt
+  that is non-finite, <= 0 or > ``max_dt``: no gyro propagation;
 * non-finite or zero-norm accelerometer: no correction at all for that sample;
 * non-finite or zero-norm magnetometer (9D): no heading correction for that sample.
 """
@@ -36,6 +37,9 @@ __all__ = ["OrientationFilter", "FilterOutput", "run_batch", "dt_from_timestamps
 
 N_COMMON_STATE = 5
 N_COMMON_PARAMS = 2
+#: rad/s: ±2000 °/s, the largest full scale of common MEMS gyros. A reading at or beyond it is
+#: saturated (the true rate is unknown), so it is not integrated. BROAD's largest is 25.2 rad/s.
+GYRO_FULL_SCALE = 34.9
 
 
 @dataclass(frozen=True)
@@ -257,10 +261,10 @@ def vector_ok(v):
 def propagate_gyro(q, gyr, dt, max_dt):
     """``q ⊗ exp(ω Δt / 2)``: strapdown integration of one gyro sample [rad/s] over Δt [s].
 
-    Returns ``(q_new, done)``; skipped (q unchanged) for non-finite ω or an invalid Δt.
+    Returns ``(q_new, done)``; skipped (q unchanged) for non-finite or saturated ω or an invalid Δt.
     """
-    if not (math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2])):
-        return q, False
+    if not (abs(gyr[0]) < GYRO_FULL_SCALE and abs(gyr[1]) < GYRO_FULL_SCALE and abs(gyr[2]) < GYRO_FULL_SCALE):
+        return q, False  # also catches NaN (comparisons with NaN are False)
     if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
         return q, False
     dq = from_rotvec_scalar(gyr[0] * dt, gyr[1] * dt, gyr[2] * dt)

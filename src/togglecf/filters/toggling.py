@@ -23,7 +23,7 @@ part), and the LERP of step 7 is the quaternion equivalent of projecting
 between them; LERP stays exactly unit-norm after normalising). γ = 1 makes the orientation
 a pure function of the two gyro-propagated vectors; γ < 1 adds a second smoothing stage.
 
-Bad samples follow the policy of ``filters.base`` (non-finite gyro or Δt: no propagation;
+Bad samples follow the policy of ``filters.base`` (non-finite or saturated gyro, bad Δt: no propagation;
 bad acc: no tilt update; bad mag: no heading update). Non-finite predictions count as
 "no prediction": the probabilities of the last valid hop are kept (caller's job) and η̂ = 0.
 """
@@ -35,7 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, acc_mag_quaternion, load_quat, store_quat, vector_ok
+from .base import (GYRO_FULL_SCALE, FilterSettings, OrientationFilter, acc_mag_quaternion, load_quat, store_quat,
+                   vector_ok)
 from ..quaternion import from_rotvec_scalar, multiply_scalar, normalize_scalar, rotate_inverse_scalar
 
 __all__ = ["TogglingFilter", "TogglingSettings", "toggle_step", "N_PRED_NOISE"]
@@ -159,7 +160,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     b = (state[5], state[6], state[7])
     a_pred = (state[8], state[9], state[10])
     m_pred = (state[11], state[12], state[13])
-    g_ok = math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2])
+    g_ok = abs(gyr[0]) < GYRO_FULL_SCALE and abs(gyr[1]) < GYRO_FULL_SCALE and abs(gyr[2]) < GYRO_FULL_SCALE
     if g_ok and bias_gain > 0.0 and p_static > 0.0:  # step 1
         rx, ry, rz = gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2]
         if rx * rx + ry * ry + rz * rz < bias_gate * bias_gate:

@@ -63,5 +63,7 @@ def test_study_report_and_no_leakage(broad_index, tmp_path):
         res_train = evaluate_trials(broad_index, fold["train"], "cf", grid, jobs=1)
         means = [np.mean([r[n].errors["total"] for n in fold["train"]]) for r in res_train]
         assert params == grid[int(np.argmin(means))]
+    per_group = pd.read_csv(out / "per_group.csv", index_col=[0, 1])
+    assert {"total", "heading", "inclination", "roll", "pitch", "yaw", "us_per_sample"} <= set(per_group.index.get_level_values(0))
     summary = (out / "summary.md").read_text()
     assert "Δ madgwick" in summary and "Ablations" in summary

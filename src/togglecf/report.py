@@ -58,7 +58,8 @@ def write_report(out, result: dict, series: dict, timelines: dict, trials: dict)
     wide = df.pivot_table(index="trial", columns="filter", values="total")
     atomic_write_text(out / "per_trial_total.csv", wide.to_csv(float_format="%.4f"))
     groups = {g: m for g, m in result["groups"].items()}
-    per_group = {m: group_table(df, groups, m) for m in ("total", "heading", "inclination")}
+    per_group = {m: group_table(df, groups, m) for m in ("total", "heading", "inclination", "roll", "pitch", "yaw",
+                                                          "us_per_sample") if m in df}
     long = pd.concat({m: t for m, t in per_group.items()}, names=["metric", "group"])
     atomic_write_text(out / "per_group.csv", long.to_csv(float_format="%.4f"))
     atomic_write_text(out / "summary.md", _summary(df, per_group, result))

@@ -1,4 +1,4 @@
-"""``togglecf`` command line: ``trials``, ``evaluate``, ``tune``, ``download``."""
+"""togglecf: orientation filters on BROAD (evaluate, tune), the learning pipeline (train), data (trials, download)."""
 from __future__ import annotations
 
 import argparse

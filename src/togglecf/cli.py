@@ -1,5 +1,5 @@
 """togglecf: orientation filters on BROAD (evaluate, tune), the learning pipeline (train), views (plot),
-live orientation (stream), data (trials, download)."""
+live orientation (stream), embedded C code (export), data (trials, download)."""
 from __future__ import annotations
 
 import argparse
@@ -69,6 +69,7 @@ def _parser():
     sp.add_argument("--jobs", type=int, default=None)
     sp.set_defaults(func=cmd_tune)
 
+    from .export import add_export_parser
     from .plots import add_plot_parser
     from .stream import add_stream_parser
     from .train import add_train_parser
@@ -76,6 +77,7 @@ def _parser():
     add_train_parser(sub)
     add_plot_parser(sub)
     add_stream_parser(sub)
+    add_export_parser(sub)
 
     sp = sub.add_parser("download", help="fetch BROAD (trial files + trials.json) from GitHub")
     sp.add_argument("dest", nargs="?", default="data/broad", help="target directory (default: ./data/broad)")

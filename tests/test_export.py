@@ -1,0 +1,283 @@
+"""Embedded export (``togglecf.export``): TL2cgen C code and the compact array format predict
+what XGBoost / ``FlatForest`` predict (NaN features included), the TL2cgen facts the export
+relies on hold, prefixed models link together, and object sizes are measured."""
+import ctypes
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+pytest.importorskip("treelite", reason="treelite is not installed")
+pytest.importorskip("tl2cgen", reason="tl2cgen is not installed")
+if shutil.which("gcc") is None or shutil.which("nm") is None or shutil.which("size") is None:
+    pytest.skip("gcc/binutils not installed: the exported C code cannot be compiled", allow_module_level=True)
+
+import xgboost as xgb  # noqa: E402
+
+from togglecf import export  # noqa: E402
+from togglecf.trees import FlatForest  # noqa: E402
+
+TOL = 1e-5
+
+
+# ----------------------------------------------------------------------------- synthetic boosters
+
+@pytest.fixture(scope="module")
+def synthetic():
+    """Two boosters trained WITH missing values (so some nodes send NaN left, which models
+    trained on complete BROAD features never do): a 3-class softprob and a regressor."""
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((600, 6)).astype(np.float32)
+    X[rng.random(X.shape) < 0.25] = np.nan
+    score = np.nan_to_num(X[:, 0], nan=2.0) + 0.5 * np.nan_to_num(X[:, 1], nan=-1.5)
+    y_cls = np.digitize(score, [-0.5, 0.7])
+    y_reg = 3.0 * score + np.isnan(X[:, 2]) * 5.0
+    common = {"tree_method": "hist", "max_depth": 4, "eta": 0.3, "nthread": 1, "seed": 0}
+    clf = xgb.train({**common, "objective": "multi:softprob", "num_class": 3}, xgb.DMatrix(X, y_cls), 12)
+    reg = xgb.train({**common, "objective": "reg:squarederror", "base_score": 0.0}, xgb.DMatrix(X, y_reg), 12)
+    Xt = rng.standard_normal((400, 6)).astype(np.float32)
+    Xt[rng.random(Xt.shape) < 0.3] = np.nan
+    Xt[0] = np.nan  # an all-missing row
+    # rows on the split thresholds and one float32 ulp either side (where rounding errors show)
+    f = FlatForest.from_booster(reg)
+    thr = f.threshold[f.feature >= 0]
+    feat = f.feature[f.feature >= 0]
+    edge = np.tile(Xt[1:2], (3 * len(thr), 1))
+    for i, (j, t) in enumerate(zip(feat, thr)):
+        for k, v in enumerate((np.nextafter(t, np.float32(-np.inf)), t, np.nextafter(t, np.float32(np.inf)))):
+            edge[3 * i + k, j] = v
+    return {"classifier": clf, "acc_x": reg}, np.vstack([Xt, edge])
+
+
+@pytest.fixture(scope="module")
+def synthetic_export(synthetic, tmp_path_factory):
+    boosters, Xt = synthetic
+    out = tmp_path_factory.mktemp("tl_synth")
+    return export.export_tl2cgen_boosters(boosters, out, X=Xt), out
+
+
+@pytest.fixture(scope="module")
+def firmware_lib(synthetic_export, tmp_path_factory):
+    """The prefixed firmware copies of both synthetic models + the batch harness in one library."""
+    rep, _ = synthetic_export
+    fw = rep["firmware_dir"]
+    names = list(rep["models"])
+    tmp = tmp_path_factory.mktemp("fwlib")
+    h = tmp / "harness.c"
+    h.write_text(export._tl_harness([f"tcf_{n}_" for n in names], [f"tcf_{n}_header.h" for n in names]))
+    srcs = [h] + [f for n in names for f in rep["models"][n]["firmware"]]
+    lib = export._gcc_shared(srcs, tmp / "libfw.so", [fw])
+    return ctypes.CDLL(str(lib)), lib
+
+
+def test_synthetic_models_have_default_left_nodes(synthetic):
+    boosters, _ = synthetic
+    assert FlatForest.from_booster(boosters["classifier"]).default_left[
+        FlatForest.from_booster(boosters["classifier"]).feature >= 0].any()
+
+
+def test_tl2cgen_equals_xgboost_with_nan(synthetic_export):
+    rep, out = synthetic_export
+    assert rep["ok"], rep
+    assert rep["max_abs_diff"] <= TOL
+    for name, e in rep["models"].items():
+        assert set(e["max_abs_diff"]) >= {"predictor_margin", "firmware_margin"}
+        assert (out / "tl2cgen" / f"{name}.tl").is_file()
+    assert "predictor_proba" in rep["models"]["classifier"]["max_abs_diff"]
+
+
+def test_treelite_checkpoint_round_trips(synthetic_export, synthetic):
+    import treelite
+
+    rep, out = synthetic_export
+    boosters, Xt = synthetic
+    model = treelite.Model.deserialize(str(out / "tl2cgen" / "acc_x.tl"))
+    assert model.num_tree == 12
+    got = np.asarray(treelite.gtil.predict(model, Xt, pred_margin=True), np.float64).reshape(len(Xt), -1)
+    ref = export._xgb_predict(boosters["acc_x"], Xt, margin=True)
+    assert np.abs(got - ref).max() <= TOL
+
+
+def test_tl2cgen_predict_accumulates_into_result(firmware_lib, synthetic):
+    lib, _ = firmware_lib
+    _, Xt = synthetic
+    once = export.tl2cgen_batch_predict(lib, "tcf_classifier_", Xt, 3, zero=True, repeat=1)
+    twice = export.tl2cgen_batch_predict(lib, "tcf_classifier_", Xt, 3, zero=True, repeat=2)
+    np.testing.assert_allclose(twice, 2 * once, rtol=1e-6, atol=1e-6)  # ADDS: result must be zeroed first
+    assert np.abs(once).max() > 0.1
+
+
+def test_tl2cgen_nan_counts_as_present_unless_marked_missing(firmware_lib, synthetic):
+    lib, _ = firmware_lib
+    boosters, Xt = synthetic
+    ref = export._xgb_predict(boosters["acc_x"], Xt, margin=True)
+    marked = export.tl2cgen_batch_predict(lib, "tcf_acc_x_", Xt, 1, mark_missing=True)
+    raw_nan = export.tl2cgen_batch_predict(lib, "tcf_acc_x_", Xt, 1, mark_missing=False)
+    assert np.abs(marked - ref).max() <= TOL
+    assert np.abs(raw_nan - ref).max() > 0.1  # NaN in fvalue: x < thr is false -> right, not default_left
+
+
+def test_symbol_rename_links_two_models(synthetic_export, firmware_lib, tmp_path):
+    rep, _ = synthetic_export
+    _, libpath = firmware_lib
+    syms = subprocess.run(["nm", "-D", "--defined-only", str(libpath)], capture_output=True, text=True).stdout.split()
+    assert "tcf_classifier_predict" in syms and "tcf_acc_x_predict" in syms
+    assert "predict" not in syms and "postprocess" not in syms
+    # the unmodified TL2cgen outputs of two models do collide
+    gen = [rep["models"][n]["generated"][0] for n in ("classifier", "acc_x")]
+    objs = []
+    for i, src in enumerate(gen):
+        o = tmp_path / f"m{i}.o"
+        subprocess.run(["gcc", "-O0", "-fPIC", "-c", src, "-o", str(o), f"-I{src.rsplit('/', 1)[0]}"], check=True)
+        objs.append(str(o))
+    res = subprocess.run(["gcc", "-shared", "-o", str(tmp_path / "clash.so"), *objs], capture_output=True, text=True)
+    assert res.returncode != 0 and "multiple definition" in res.stderr
+
+
+def test_firmware_headers_can_be_included_together(synthetic_export, tmp_path):
+    rep, _ = synthetic_export
+    c = tmp_path / "both.c"
+    c.write_text('#include "tcf_classifier_header.h"\n#include "tcf_acc_x_header.h"\n'
+                 "int n(void) { return tcf_classifier_get_num_feature() + tcf_acc_x_get_num_feature(); }\n")
+    subprocess.run(["gcc", "-Wall", "-Werror", "-c", str(c), "-o", str(tmp_path / "both.o"),
+                    f"-I{rep['firmware_dir']}"], check=True)
+
+
+def test_tl2cgen_quantized_equals_xgboost(synthetic, tmp_path):
+    boosters, Xt = synthetic
+    rep = export.export_tl2cgen_boosters({"acc_x": boosters["acc_x"]}, tmp_path, quantize=True, X=Xt)
+    assert rep["ok"], rep
+
+
+def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path):
+    boosters, Xt = synthetic
+    for name, b in boosters.items():
+        forest = FlatForest.from_booster(b)
+        prefix = f"tcf_{name}_"
+        h, c = export.forest_to_c(forest, prefix, n_classes=3 if name == "classifier" else 0)
+        (tmp_path / f"{prefix}forest.h").write_text(h)
+        (tmp_path / f"{prefix}forest.c").write_text(c)
+        harness = tmp_path / f"{prefix}harness.c"
+        harness.write_text(export._ARRAY_HARNESS.replace("{P}", prefix).replace("{U}", prefix.upper()))
+        for acc in ("double", "float"):
+            lib = ctypes.CDLL(str(export._gcc_shared([harness, tmp_path / f"{prefix}forest.c"],
+                                                     tmp_path / f"lib{name}_{acc}.so", [tmp_path],
+                                                     defines=[f"TCF_ACC_T={acc}"])))
+            got = export.array_batch_predict(lib, prefix, Xt, forest.n_outputs)
+            assert np.abs(got - forest.predict_margin(Xt)).max() <= TOL
+            assert np.abs(got - export._xgb_predict(b, Xt, margin=True)).max() <= TOL
+    assert len(h) > 0
+
+
+def test_measure_sizes_host_and_riscv(tmp_path):
+    c = tmp_path / "f.c"
+    c.write_text("static const float t[256] = {1.0f};\nfloat f(int i) { return t[i & 255]; }\n")
+    sizes = export.measure_sizes([c])[str(c)]
+    assert sizes["host"]["total"] >= 1024 and sizes["host"]["text"] > 0
+    if shutil.which(export.RISCV_GCC):
+        assert sizes["riscv"]["total"] >= 1024
+    else:
+        assert sizes["riscv"] is None
+
+
+# ------------------------------------------------------------------------------------ real data
+
+@pytest.fixture(scope="module")
+def tiny_models(broad_index, tmp_path_factory):
+    from togglecf.train import load_config, run_training
+
+    cfg = load_config()
+    cfg["classifier"].update(n_estimators=8, max_depth=3)
+    cfg["regressor"].update(n_estimators=5, max_depth=3)
+    out = tmp_path_factory.mktemp("models") / "tiny"
+    run_training(cfg, data_dir=broad_index.root, trials="02,24", out=out, cv=False, verbose=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def real_X(tiny_models, broad_index):
+    from togglecf.models import load_bundle
+
+    X = export.window_features_of_trials(load_bundle(tiny_models), "05", broad_index.root)  # not trained on
+    rng = np.random.default_rng(1)
+    Xn = X[:300].copy()
+    Xn[rng.random(Xn.shape) < 0.2] = np.nan  # non-finite samples make NaN features in the filter
+    return np.vstack([X, Xn])
+
+
+@pytest.mark.broad
+def test_real_bundle_tl2cgen_equals_xgboost(tiny_models, real_X, tmp_path):
+    rep = export.export_tl2cgen(tiny_models, tmp_path, X=real_X)
+    assert rep["ok"], rep
+    assert set(rep["models"]) == set(export.BOOSTER_NAMES)
+
+
+@pytest.mark.broad
+def test_real_bundle_array_equals_flatforest(tiny_models, real_X, tmp_path):
+    rep = export.export_array_c(tiny_models, tmp_path, X=real_X)
+    assert rep["ok"], rep
+    assert set(rep["models"]) == {"forest", *export.BOOSTER_NAMES}
+    sizes = export._model_sizes(rep, "source", riscv=False)
+    n = rep["models"]["forest"]["n_nodes"]
+    assert 8 * n <= sizes["forest"]["host"] <= 8 * n + 2048  # 8 bytes per node + walker and tables
+
+
+@pytest.mark.broad
+def test_cli_export(tiny_models, broad_index, tmp_path, capsys):
+    import argparse
+
+    p = argparse.ArgumentParser()
+    export.add_export_parser(p.add_subparsers(dest="command"))
+    args = p.parse_args(["export", "--models", str(tiny_models), "--out", str(tmp_path / "emb"), "--format", "array",
+                         "--data", str(broad_index.root), "--trials", "05", "--no-riscv"])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "OK" in out and "forest" in out
+    assert (tmp_path / "emb" / "export_report.json").is_file()
+    assert (tmp_path / "emb" / "array" / "tcf_forest.c").is_file()
+
+
+def test_c_float_literals_round_trip():
+    for v in (0.0, -10.0, 1e-5, 1.5, -0.0, 3e38, 1e-45, 0.1):
+        lit = export._c_float(v)
+        assert lit.endswith("f") and any(c in lit for c in ".e")
+        assert np.float32(float(lit[:-1])) == np.float32(v)
+
+
+def test_pareto_front():
+    rows = [{"host_bytes": 10, "balanced_accuracy": 0.7}, {"host_bytes": 20, "balanced_accuracy": 0.8},
+            {"host_bytes": 30, "balanced_accuracy": 0.75}, {"host_bytes": 40, "balanced_accuracy": 0.9}]
+    assert export.pareto_front(rows) == [rows[0], rows[1], rows[3]]
+
+
+@pytest.mark.broad
+def test_pruning_sweep_reports_size_and_accuracy(broad_index):
+    rows = export.pruning_sweep(grid=((3, 2),), train_trials="02,24", test_trials="07", data_dir=broad_index.root,
+                                riscv=False)
+    (r,) = rows
+    assert r["n_nodes"] > 0 and r["host_bytes"] >= 8 * r["n_nodes"]
+    assert 0.0 <= r["balanced_accuracy"] <= 1.0 and r["acc_rmse"] > 0
+
+
+@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+def test_linked_riscv_program(synthetic, tmp_path):
+    boosters, _ = synthetic
+    h, c = export.forest_to_c(FlatForest.from_booster(boosters["classifier"]), "tcf_", n_classes=3)
+    (tmp_path / "tcf_forest.h").write_text(h)
+    (tmp_path / "tcf_forest.c").write_text(c)
+    size = export.link_riscv([tmp_path / "tcf_forest.c"], [tmp_path], export._ARRAY_MAIN)
+    if size is None:
+        pytest.skip("picolibc for riscv64-unknown-elf not installed")
+    assert size["flash"] > 8 * FlatForest.from_booster(boosters["classifier"]).n_nodes
+
+
+@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+def test_linked_riscv_tl2cgen_models_together(synthetic_export):
+    rep, _ = synthetic_export
+    files = [f for e in rep["models"].values() for f in e["firmware"]]
+    size = export.link_riscv(files, [rep["firmware_dir"]],
+                             export._tl2cgen_main([f"tcf_{n}_" for n in rep["models"]], 6, 3))
+    if size is None:
+        pytest.skip("picolibc for riscv64-unknown-elf not installed")
+    assert size["flash"] > 1000

@@ -32,6 +32,21 @@ def broad_trial(broad_index):
     return broad_index.load("05_undisturbed_slow_rotation_with_breaks_B")
 
 
+@pytest.fixture(scope="session")
+def tiny_model_dir(broad_index, tmp_path_factory):
+    """A model directory trained in seconds on 3 real trials (02, 07, 24; no CV, no gains):
+    for tests of what is done *with* trained models (compiled inference, export)."""
+    from togglecf.train import load_config, run_training
+
+    cfg = load_config()
+    cfg["classifier"].update(n_estimators=15, max_depth=4)
+    cfg["regressor"].update(n_estimators=10, max_depth=4)
+    cfg["gains"]["learn"] = False
+    out = tmp_path_factory.mktemp("models") / "tiny"
+    run_training(cfg, data_dir=broad_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
+    return out
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

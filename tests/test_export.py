@@ -184,15 +184,8 @@ def test_measure_sizes_host_and_riscv(tmp_path):
 # ------------------------------------------------------------------------------------ real data
 
 @pytest.fixture(scope="module")
-def tiny_models(broad_index, tmp_path_factory):
-    from togglecf.train import load_config, run_training
-
-    cfg = load_config()
-    cfg["classifier"].update(n_estimators=8, max_depth=3)
-    cfg["regressor"].update(n_estimators=5, max_depth=3)
-    out = tmp_path_factory.mktemp("models") / "tiny"
-    run_training(cfg, data_dir=broad_index.root, trials="02,24", out=out, cv=False, verbose=False)
-    return out
+def tiny_models(tiny_model_dir):
+    return tiny_model_dir
 
 
 @pytest.fixture(scope="module")

@@ -14,15 +14,8 @@ GAINS = dict(alpha_acc=(0.02, 0.002, 0.0005, 0.0002), alpha_mag=(0.005, 0.001, 0
 
 
 @pytest.fixture(scope="module")
-def bundle(broad_index, tmp_path_factory):
-    from togglecf.train import load_config, run_training
-
-    cfg = load_config()
-    cfg["classifier"].update(n_estimators=15, max_depth=4)
-    cfg["regressor"].update(n_estimators=10, max_depth=4)
-    out = tmp_path_factory.mktemp("models") / "tiny"
-    run_training(cfg, data_dir=broad_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
-    return load_bundle(out)
+def bundle(tiny_model_dir):
+    return load_bundle(tiny_model_dir)
 
 
 @pytest.fixture(scope="module")

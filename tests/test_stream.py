@@ -51,11 +51,11 @@ def _corrupted_stream(trial, seed=0):
         elif kind == "truncated":  # cut in its first 60 %: fewer fields
             lines.append(line[: rng.integers(1, int(0.6 * len(line)))].rstrip(",").encode() + b",")
             continue  # counted by the processor as wrong count or ... see below
-        elif kind == "nan":
+        elif kind in ("nan", "word"):  # one field replaced by a non-finite or a non-numeric token
             parts = line.split(",")
-            parts[rng.integers(1, 10)] = "nan"
+            parts[rng.integers(1, 10)] = "nan" if kind == "nan" else "abc"
             lines.append(",".join(parts).encode())
-            counts["non_finite"] += 1
+            counts["non_finite" if kind == "nan" else "non_numeric"] += 1
             continue
         elif kind == "extra":
             lines.append((line + ",1.0").encode())
@@ -64,12 +64,6 @@ def _corrupted_stream(trial, seed=0):
         elif kind == "missing":
             lines.append(line.rsplit(",", 1)[0].encode())
             counts["wrong_field_count"] += 1
-            continue
-        elif kind == "word":
-            parts = line.split(",")
-            parts[rng.integers(1, 10)] = "abc"
-            lines.append(",".join(parts).encode())
-            counts["non_numeric"] += 1
             continue
         elif kind == "drop":
             counts["dropped_lines"] += 1

@@ -3,7 +3,6 @@ live orientation (stream), embedded C code (export), data (trials, download)."""
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path

@@ -9,7 +9,7 @@ others are held; a few sweeps over all parameters converge on these smooth objec
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit

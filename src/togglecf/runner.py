@@ -11,7 +11,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 import multiprocessing as mp
-from pathlib import Path
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from .evaluation import TagpResult, tagp, trial_errors
 from .filters import make_filter
 from .progress import progress
 
-__all__ = ["TrialResult", "run_filter", "evaluate_trials", "grid_search", "parse_grid"]
+__all__ = ["TrialResult", "run_filter", "evaluate_trials", "grid_points", "grid_search", "parse_grid"]
 
 
 @dataclass
@@ -137,10 +136,15 @@ def parse_grid(specs: list[str]) -> dict[str, list[float]]:
     return grid
 
 
+def grid_points(grid: dict) -> list[dict]:
+    """Every parameter dict of a grid (name -> values), in ``itertools.product`` order."""
+    return [dict(zip(grid, k)) for k in itertools.product(*grid.values())]
+
+
 def grid_search(index, names, filter_name, grid, use_mag=True, jobs=None) -> TagpResult:
     """Evaluate the full grid on the trials and return BROAD's TAGP (see ``evaluation.tagp``)."""
-    keys = list(itertools.product(*grid.values()))
-    params_list = [dict(zip(grid, k)) for k in keys]
+    params_list = grid_points(grid)
+    keys = [tuple(p.values()) for p in params_list]
     results = evaluate_trials(index, names, filter_name, params_list, use_mag, jobs, desc=f"tune {filter_name}")
     scored = {k: {n: r.errors for n, r in res.items()} for k, res in zip(keys, results)}
     return tagp(grid, scored)

@@ -27,12 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from .data import DatasetIndex, resolve_data_dir
-from .evaluation import METRICS, error_angles_rad, error_quaternion, remove_heading_offset, trial_errors
+from .evaluation import error_angles_rad, error_quaternion, remove_heading_offset, tagp, trial_errors
 from .filters.toggling import CompiledModels, ModelTogglingFilter, TogglingFilter
 from .gains import GainSearch, learn_gains, load_gains
-from .io import atomic_write_json
 from .models import load_bundle
-from .runner import evaluate_trials, parse_grid, run_filter
+from .runner import evaluate_trials, grid_points, parse_grid, run_filter
 
 __all__ = ["StudyConfig", "load_study_config", "trial_folds", "run_study"]
 
@@ -118,8 +117,7 @@ def _baseline_grids(index, names, grids, use_mag, jobs):
     """filter -> (list of params, list over params of trial -> TrialResult)."""
     out = {}
     for filt, grid in grids.items():
-        keys = [dict(zip(grid, vals)) for vals in np.array(np.meshgrid(*grid.values(), indexing="ij")).reshape(
-            len(grid), -1).T.tolist()]
+        keys = grid_points(grid)
         t0 = time.perf_counter()
         res = evaluate_trials(index, names, filt, keys, use_mag=use_mag, jobs=jobs,
                               desc=f"{filt} grid ({'9D' if use_mag else '6D'})")
@@ -130,9 +128,11 @@ def _baseline_grids(index, names, grids, use_mag, jobs):
 
 
 def _tagp_on(train_names, keys, res):
-    mean = [np.mean([r[n].errors["total"] for n in train_names]) for r in res]
-    i = int(np.nanargmin(mean))
-    return i, keys[i], float(mean[i])
+    """BROAD's TAGP of a grid over the training trials only: (index, params, mean total RMSE)."""
+    grid = {k: list(dict.fromkeys(p[k] for p in keys)) for k in keys[0]}
+    t = tagp(grid, {tuple(p.values()): {n: r[n].errors for n in train_names} for p, r in zip(keys, res)})
+    i = keys.index(t.params)
+    return i, keys[i], float(np.nanmin(t.mean_total))
 
 
 def _vqf(trial, use_mag=True):

@@ -258,16 +258,25 @@ def vector_ok(v):
 
 
 @njit(cache=True, inline="always")
+def gyro_increment(gyr, dt, max_dt):
+    """``exp(ω Δt / 2)`` of one gyro sample [rad/s] over Δt [s]: ``(ok, dq)``, with ``ok`` False
+    (and ``dq`` identity) for a non-finite or saturated ω or an invalid Δt (policy above)."""
+    if not (abs(gyr[0]) < GYRO_FULL_SCALE and abs(gyr[1]) < GYRO_FULL_SCALE and abs(gyr[2]) < GYRO_FULL_SCALE):
+        return False, (1.0, 0.0, 0.0, 0.0)  # also catches NaN (comparisons with NaN are False)
+    if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
+        return False, (1.0, 0.0, 0.0, 0.0)
+    return True, from_rotvec_scalar(gyr[0] * dt, gyr[1] * dt, gyr[2] * dt)
+
+
+@njit(cache=True, inline="always")
 def propagate_gyro(q, gyr, dt, max_dt):
     """``q ⊗ exp(ω Δt / 2)``: strapdown integration of one gyro sample [rad/s] over Δt [s].
 
     Returns ``(q_new, done)``; skipped (q unchanged) for non-finite or saturated ω or an invalid Δt.
     """
-    if not (abs(gyr[0]) < GYRO_FULL_SCALE and abs(gyr[1]) < GYRO_FULL_SCALE and abs(gyr[2]) < GYRO_FULL_SCALE):
-        return q, False  # also catches NaN (comparisons with NaN are False)
-    if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
+    ok, dq = gyro_increment(gyr, dt, max_dt)
+    if not ok:
         return q, False
-    dq = from_rotvec_scalar(gyr[0] * dt, gyr[1] * dt, gyr[2] * dt)
     return normalize_scalar(multiply_scalar(q, dq)), True
 
 

@@ -30,14 +30,14 @@ bad acc: no tilt update; bad mag: no heading update). Non-finite predictions cou
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from .base import (GYRO_FULL_SCALE, FilterSettings, OrientationFilter, acc_mag_quaternion, load_quat, store_quat,
-                   vector_ok)
-from ..quaternion import from_rotvec_scalar, multiply_scalar, normalize_scalar, rotate_inverse_scalar
+from .base import (GYRO_FULL_SCALE, FilterSettings, OrientationFilter, acc_mag_quaternion, gyro_increment, load_quat,
+                   store_quat, vector_ok)
+from ..quaternion import multiply_scalar, normalize_scalar, rotate_inverse_scalar
 
 __all__ = ["TogglingFilter", "TogglingSettings", "toggle_step", "N_PRED_NOISE"]
 
@@ -166,8 +166,8 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
         if rx * rx + ry * ry + rz * rz < bias_gate * bias_gate:
             k = bias_gain * p_static
             b = (b[0] + k * rx, b[1] + k * ry, b[2] + k * rz)
-    if g_ok and math.isfinite(dt) and dt > 0.0 and dt <= max_dt:  # step 2
-        dq = from_rotvec_scalar((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
+    ok_dq, dq = gyro_increment((gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2]), dt, max_dt)
+    if g_ok and ok_dq:  # step 2
         q = normalize_scalar(multiply_scalar(q, dq))
         a_pred = rotate_inverse_scalar(dq, a_pred)
         m_pred = rotate_inverse_scalar(dq, m_pred)
@@ -259,8 +259,8 @@ class TogglingFilter(OrientationFilter):
 # Models inside the loop: features pushed every sample, trees evaluated every hop, all compiled.
 # ------------------------------------------------------------------------------------------------
 
-from ..streaming_features import N_AUX, N_FEATURES, N_RING, StreamingFeatures, push_sample, window_features  # noqa: E402
-from ..trees import FlatForest, predict_margin_row  # noqa: E402
+from ..streaming_features import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features  # noqa: E402
+from ..trees import FlatForest, predict_margin_row, softmax  # noqa: E402
 
 
 class CompiledModels:
@@ -304,8 +304,7 @@ class CompiledModels:
         """Prediction rows ``(n, S + 6)`` (class probabilities, η̂_a, η̂_m) of feature rows ``X``."""
         m = self.forest.predict_margin(X)
         k = len(self.class_names)
-        e = np.exp(m[:, :k] - m[:, :k].max(axis=1, keepdims=True))
-        m[:, :k] = e / e.sum(axis=1, keepdims=True)
+        m[:, :k] = softmax(m[:, :k])
         return m
 
 

@@ -238,21 +238,6 @@ def test_c_float_literals_round_trip():
         assert np.float32(float(lit[:-1])) == np.float32(v)
 
 
-def test_pareto_front():
-    rows = [{"host_bytes": 10, "balanced_accuracy": 0.7}, {"host_bytes": 20, "balanced_accuracy": 0.8},
-            {"host_bytes": 30, "balanced_accuracy": 0.75}, {"host_bytes": 40, "balanced_accuracy": 0.9}]
-    assert export.pareto_front(rows) == [rows[0], rows[1], rows[3]]
-
-
-@pytest.mark.broad
-def test_pruning_sweep_reports_size_and_accuracy(broad_index):
-    rows = export.pruning_sweep(grid=((3, 2),), train_trials="02,24", test_trials="07", data_dir=broad_index.root,
-                                riscv=False)
-    (r,) = rows
-    assert r["n_nodes"] > 0 and r["host_bytes"] >= 8 * r["n_nodes"]
-    assert 0.0 <= r["balanced_accuracy"] <= 1.0 and r["acc_rmse"] > 0
-
-
 @pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
 def test_linked_riscv_program(synthetic, tmp_path):
     boosters, _ = synthetic

@@ -75,9 +75,9 @@ def test_trees_of_zero_weighted_outputs_are_skipped_without_changing_the_result(
     t = segment.slice(0, 4000)
     models = CompiledModels.from_bundle(bundle)
     full = ModelTogglingFilter(t.fs, models=models, **GAINS, noise_weight_acc=0.0)
-    assert len(full._forest.roots) < len(models.forest.roots)  # the acc regressors' trees are dropped
+    assert len(full.forest.roots) < len(models.forest.roots)  # the acc regressors' trees are dropped
     ref = ModelTogglingFilter(t.fs, models=models, **GAINS, noise_weight_acc=0.0)
-    ref._forest = models.forest  # walk every tree
+    ref.forest = models.forest  # walk every tree
     a = full.update_batch(t.gyr, t.acc, t.mag)
     b = ref.update_batch(t.gyr, t.acc, t.mag)
     assert np.array_equal(a.quat, b.quat)

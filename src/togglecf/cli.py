@@ -77,6 +77,9 @@ def _parser():
     add_plot_parser(sub)
     add_stream_parser(sub)
     add_export_parser(sub)
+    from .prune import add_prune_parser
+
+    add_prune_parser(sub)
 
     sp = sub.add_parser("download", help="fetch BROAD (trial files + trials.json) from GitHub")
     sp.add_argument("dest", nargs="?", default="data/broad", help="target directory (default: ./data/broad)")

@@ -31,8 +31,7 @@ TL2cgen facts this module relies on (each verified in ``tests/test_export.py``):
   windows. ``export_tl2cgen`` rewrites that table with the booster's exact thresholds (checked).
   ``predict`` then also overwrites ``data[i].qvalue`` in place: refill the entries every call.
 
-``pruning_sweep`` retrains smaller models on one train/test split of trials and reports size
-(merged array forest) against held-out accuracy; ``pareto_front`` keeps the undominated rows.
+Smaller models and their held-out accuracy: ``togglecf.prune`` (the pruning sweep).
 
 ``measure_sizes`` compiles C files with ``gcc -Os -c`` and reads ``size`` for the host and,
 when ``riscv64-unknown-elf-gcc`` is installed, for ``-march=rv32imc -mabi=ilp32`` (with
@@ -40,8 +39,10 @@ picolibc's headers when available).
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -53,7 +54,7 @@ import numpy as np
 
 __all__ = ["BOOSTER_NAMES", "export_tl2cgen", "export_tl2cgen_boosters", "export_array_c", "measure_sizes", "bundle_boosters",
            "window_features_of_trials", "tl2cgen_batch_predict", "array_batch_predict", "forest_to_c",
-           "rename_tl2cgen_sources", "add_export_parser", "cmd_export", "pruning_sweep", "pareto_front", "link_riscv"]
+           "rename_tl2cgen_sources", "add_export_parser", "cmd_export", "link_riscv", "stack_usage"]
 
 BOOSTER_NAMES = ("classifier", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z")
 TOLERANCE = 1e-5
@@ -90,6 +91,24 @@ def _xgb_predict(booster, X, margin: bool) -> np.ndarray:
     dm = xgb.DMatrix(np.asarray(X, np.float32), missing=np.nan, feature_names=booster.feature_names)
     p = np.asarray(booster.predict(dm, output_margin=margin), np.float64)
     return p.reshape(len(X), -1)
+
+
+@contextlib.contextmanager
+def native_stderr_silenced():
+    """Discard what C/C++ code writes to file descriptors 1 and 2 inside the block (Treelite's
+    and TL2cgen's log lines, which Python's ``sys.stdout``/``sys.stderr`` cannot catch)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        for fd, old in zip((1, 2), saved):
+            os.dup2(old, fd)
+            os.close(old)
 
 
 def _run(cmd, cwd=None):
@@ -559,6 +578,23 @@ int main(void) {{
 """
 
 
+def stack_usage(c_file, include_dirs, function: str) -> int | None:
+    """Stack bytes of ``function`` in ``c_file`` compiled for rv32imc with ``-Os -fstack-usage``
+    (gcc's static figure: exact for functions without dynamic stack), or None without the
+    cross compiler."""
+    flags = _riscv_flags()
+    if flags is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        obj = Path(tmp) / "s.o"
+        _run([RISCV_GCC, *flags, "-Os", "-fstack-usage", "-c", c_file, "-o", obj, *[f"-I{d}" for d in include_dirs]])
+        for line in (Path(tmp) / "s.su").read_text().splitlines():
+            where, nbytes, _kind = line.rsplit("\t", 2) if "\t" in line else (line, "0", "")
+            if where.endswith(f":{function}"):
+                return int(nbytes)
+    raise RuntimeError(f"{c_file}: no stack-usage entry for {function}")
+
+
 def link_riscv(c_files, include_dirs, main_source: str, defines=()) -> dict | None:
     """Size of a linked rv32imc picolibc program (``main_source`` + ``c_files``; -Os, unused
     sections dropped): models, walker, soft-float and libm routines, C runtime start-up (an
@@ -596,70 +632,6 @@ def _model_sizes(report, key: str, riscv: bool = True) -> dict:
     return sizes
 
 
-# ---------------------------------------------------------------------------------- size sweep
-
-def pruning_sweep(grid=((10, 3), (20, 3), (20, 4), (40, 4), (60, 5)), train_trials="01,06,10,15,24,26",
-                  test_trials="02,07,11,25", data_dir=None, config=None, riscv: bool = True, verbose: bool = False) -> list:
-    """Size vs. accuracy of smaller models: for each ``(n_estimators, max_depth)`` of ``grid``
-    (applied to the classifier and the regressors), fit the bundle's models on ``train_trials``
-    (the pipeline's own dataset, labels, RANSAC masks and model settings of ``config``), score
-    them on the held-out ``test_trials`` (classifier balanced accuracy / macro F1, η_a and η_m
-    RMSE), and measure the merged array forest's object size. One train/test split, not the
-    pipeline's cross-validation: indicative, cheap (the dataset is built once)."""
-    from .data import DatasetIndex, resolve_data_dir
-    from .features import FeatureSettings, feature_schema
-    from .labels import LabelSettings, state_names
-    from .trees import FlatForest
-    from .train import _evaluate, _fit_all, build_dataset, load_config
-
-    cfg0 = load_config(config)
-    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
-    train_names, test_names = index.select(train_trials), index.select(test_trials)
-    if set(train_names) & set(test_names):
-        raise ValueError("train and test trials overlap")
-    label_settings = LabelSettings.from_dict({**cfg0["labels"], "seed": cfg0["run"]["seed"]})
-    feature_settings = FeatureSettings.from_dict(cfg0["features"])
-    schema = feature_schema(feature_settings)
-    class_names = state_names(label_settings.label_set)
-    data = build_dataset(index, train_names + test_names, label_settings, feature_settings,
-                         ransac=label_settings.ransac)
-    n_train = len(train_names)
-    train_rows = np.flatnonzero((data.group < n_train) & data.train_mask)
-    test_rows = np.flatnonzero((data.group >= n_train) & data.eval_mask)
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for n, d in grid:
-            cfg = {**cfg0, "classifier": {**cfg0["classifier"], "n_estimators": int(n), "max_depth": int(d)},
-                   "regressor": {**cfg0["regressor"], "n_estimators": int(n), "max_depth": int(d)}}
-            clf, regs = _fit_all(cfg, data, train_rows, schema, class_names)
-            res, _ = _evaluate(clf, regs, data, train_rows, test_rows, schema, len(class_names))
-            forest = FlatForest.concatenate([FlatForest.from_booster(clf.booster_)]
-                                            + [FlatForest.from_booster(b) for t in ("acc", "mag")
-                                               for b in regs[t].boosters_])
-            h, c = forest_to_c(forest, "tcf_", len(class_names))
-            (Path(tmp) / "tcf_forest.h").write_text(h)
-            src = Path(tmp) / "tcf_forest.c"
-            src.write_text(c)
-            size = measure_sizes([src], riscv=riscv)[str(src)]
-            row = {"n_estimators": int(n), "max_depth": int(d), "n_nodes": int(forest.n_nodes),
-                   "host_bytes": size["host"]["total"],
-                   "riscv_bytes": None if size["riscv"] is None else size["riscv"]["total"],
-                   "balanced_accuracy": res["classifier"]["balanced_accuracy"], "f1_macro": res["classifier"]["f1_macro"],
-                   "majority_balanced_accuracy": res["majority"]["balanced_accuracy"],
-                   "acc_rmse": res["acc"]["rmse"], "acc_rmse_zero": res["acc_zero"]["rmse"],
-                   "mag_rmse": res["mag"]["rmse"], "mag_rmse_zero": res["mag_zero"]["rmse"]}
-            rows.append(row)
-            if verbose:
-                print(row, file=sys.stderr, flush=True)
-    return rows
-
-
-def pareto_front(rows, size_key="host_bytes", score_key="balanced_accuracy") -> list:
-    """The rows no other row beats on both size (smaller) and score (larger)."""
-    return [r for r in rows if not any(o[size_key] <= r[size_key] and o[score_key] >= r[score_key]
-                                       and (o[size_key] < r[size_key] or o[score_key] > r[score_key]) for o in rows)]
-
-
 # ------------------------------------------------------------------------------------------- CLI
 
 def add_export_parser(subparsers):
@@ -675,8 +647,49 @@ def add_export_parser(subparsers):
                     help="trials whose windows are checked (default: all present)")
     sp.add_argument("--no-check", action="store_true", help="skip the equivalence check (no data needed)")
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
+    sp.add_argument("--max-bytes", type=int, metavar="N",
+                    help="flash budget: run (or resume) the pruning sweep of --models in OUT/sweep, pick the point "
+                    "with the lowest held-out error whose RISC-V object code (array format; tl2cgen with "
+                    "--format tl2cgen) fits in N bytes, train it on the model's training trials into OUT/models "
+                    "and export that")
+    sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
+    from .prune import add_sweep_arguments
+
+    add_sweep_arguments(sp)
     sp.set_defaults(func=cmd_export)
     return sp
+
+
+def train_within_budget(args) -> tuple:
+    """``--max-bytes``: the sweep's best point within the budget, trained on the model's own
+    training trials (gains on out-of-fold predictions, as ``togglecf train``). Returns the new
+    model directory and a report of the choice (the point's held-out errors and the reference's)."""
+    from dataclasses import fields
+
+    from .models import load_bundle
+    from .prune import PrunePoint, choose_point, format_front, size_key, sweep_from_args, write_sweep_report
+    from .train import load_config, run_training
+
+    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
+    key = size_key("tl2cgen" if args.format == "tl2cgen" else "array", riscv)
+    sweep_dir = Path(args.sweep or Path(args.out) / "sweep")
+    rows = sweep_from_args(args, sweep_dir)
+    write_sweep_report(rows, sweep_dir, key, args.max_bytes)
+    print(format_front(rows, key))
+    best = choose_point(rows, args.max_bytes, key)
+    ref = next(r for r in rows if r["reference"])
+    print(f"chosen for {args.max_bytes} bytes: {best['key']} ({best[key]} bytes in the sweep, held-out mean total "
+          f"{best['mean_total']:.3f}° vs {ref['mean_total']:.3f}° unpruned)", file=sys.stderr)
+    bundle = load_bundle(args.models)
+    point = PrunePoint(**{f.name: best[f.name] for f in fields(PrunePoint) if f.name != "reference"})
+    cfg = point.apply(load_config(bundle.metadata["config"]))
+    cfg["run"]["name"] = f"{cfg['run']['name']}-{point.key}"
+    model_dir = Path(args.out) / "models"
+    run_training(cfg, data_dir=args.data, trials=",".join(bundle.metadata["training_trials"]), out=model_dir,
+                 cv=True, verbose=True)
+    choice = {"max_bytes": args.max_bytes, "size_key": key, "sweep_dir": str(sweep_dir), "point": best,
+              "reference": ref, "source_models": str(args.models), "models": str(model_dir)}
+    return model_dir, choice
 
 
 def _fmt_size(v):
@@ -687,6 +700,9 @@ def cmd_export(args) -> int:
     from .io import atomic_write_json
     from .models import load_bundle
 
+    choice = None
+    if args.max_bytes is not None:
+        args.models, choice = train_within_budget(args)
     X = None
     if not args.no_check:
         X = window_features_of_trials(load_bundle(args.models), args.trials, args.data)
@@ -727,5 +743,7 @@ def cmd_export(args) -> int:
             ok &= rep["ok"]
     if not riscv:
         print(f"(no RISC-V sizes: {RISCV_GCC} not installed or --no-riscv)")
+    if choice is not None:
+        reports["pruning"] = choice
     atomic_write_json(Path(args.out) / "export_report.json", reports)
     return 0 if ok else 1

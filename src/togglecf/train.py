@@ -36,7 +36,7 @@ __all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make
            "run_training", "add_train_parser", "cmd_train", "format_cv_table"]
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "pipelines" / "configs" / "default.toml"
-_RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all"}
+_RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all", "max_features": 0}
 _SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
 _GAIN_KEYS = ("learn", "modes")
 
@@ -87,6 +87,24 @@ class WindowData:
     window_samples: int
     fs: float
     per_trial: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)  # label/feature settings and RANSAC it was built with
+
+    def subset(self, names) -> "WindowData":
+        """The rows of trials ``names`` (in that order of groups), as if built from them alone."""
+        names = list(names)
+        missing = [n for n in names if n not in self.trials]
+        if missing:
+            raise ValueError(f"trials {missing} are not in this dataset")
+        old = np.array([self.trials.index(n) for n in names])
+        remap = np.full(len(self.trials), -1)
+        remap[old] = np.arange(len(names))
+        rows = np.flatnonzero(np.isin(self.group, old))
+        rows = rows[np.argsort(remap[self.group[rows]], kind="stable")]
+        arrays = {k: getattr(self, k)[rows] for k in ("X", "state", "eta_acc", "eta_mag", "train_mask", "eval_mask",
+                                                       "end")}
+        return WindowData(**arrays, group=remap[self.group[rows]], trials=names, window_samples=self.window_samples,
+                          fs=self.fs, per_trial={n: self.per_trial[n] for n in names}, settings=self.settings)
+
 
 
 def _file_sha256(path) -> str:
@@ -124,7 +142,14 @@ def build_dataset(index: DatasetIndex, names, label_settings: LabelSettings, fea
                            "sha256": _file_sha256(index.available[name])}
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     return WindowData(**cat, trials=list(names), window_samples=window_length(fs0, feature_settings.window_s),
-                      fs=fs0, per_trial=per_trial)
+                      fs=fs0, per_trial=per_trial, settings=_dataset_settings(label_settings, feature_settings, ransac))
+
+
+def _dataset_settings(label_settings, feature_settings, ransac) -> dict:
+    from dataclasses import asdict
+
+    return {"labels": label_settings.to_dict(), "features": asdict(feature_settings), "ransac": bool(ransac)}
+
 
 
 def make_folds(group: np.ndarray, n_trials: int, n_splits: int):
@@ -150,11 +175,45 @@ def _models(cfg):
 
 
 def _fit_all(cfg, data: WindowData, rows, schema, class_names):
+    """Classifier and regressors on ``rows``. With ``[run] max_features = k`` (0: all), a first
+    fit ranks the features (``feature_ranking``) and the models are refitted with only the top
+    ``k`` present: the other columns are given as missing, so no tree splits on them (fewer
+    features to compute on a microcontroller). The ranking uses the same training rows only."""
+    X = data.X[rows]
+    k = int(cfg["run"].get("max_features", 0) or 0)
+    if 0 < k < X.shape[1]:
+        keep = set(feature_ranking(*_fit_models(cfg, X, data, rows, schema, class_names), schema)[:k])
+        X = X.copy()
+        X[:, [i for i, n in enumerate(schema.names) if n not in keep]] = np.nan
+    return _fit_models(cfg, X, data, rows, schema, class_names)
+
+
+def _fit_models(cfg, X, data: WindowData, rows, schema, class_names):
     clf, regs = _models(cfg)
-    clf.fit(data.X[rows], data.state[rows], schema, class_names)
-    regs["acc"].fit(data.X[rows], data.eta_acc[rows], schema)
-    regs["mag"].fit(data.X[rows], data.eta_mag[rows], schema)
+    clf.fit(X, data.state[rows], schema, class_names)
+    regs["acc"].fit(X, data.eta_acc[rows], schema)
+    regs["mag"].fit(X, data.eta_mag[rows], schema)
     return clf, regs
+
+
+def _gain_table(clf, regs, schema) -> dict:
+    """Per booster (classifier, acc_x … mag_z): feature -> share of its total split gain."""
+    cols = {"classifier": clf.booster_}
+    for t, r in regs.items():
+        for ax, b in zip("xyz", r.boosters_):
+            cols[f"{t}_{ax}"] = b
+    table = {}
+    for c, b in cols.items():
+        gain = b.get_score(importance_type="total_gain")
+        total = sum(gain.values()) or 1.0
+        table[c] = {n: gain.get(n, 0.0) / total for n in schema.names}
+    return table
+
+
+def feature_ranking(clf, regs, schema) -> list:
+    """Feature names, most important first: the gain shares summed over the seven boosters."""
+    table = _gain_table(clf, regs, schema)
+    return sorted(schema.names, key=lambda n: -sum(t[n] for t in table.values()))
 
 
 def _evaluate(clf, regs, data: WindowData, train_rows, test_rows, schema, n_classes):
@@ -265,19 +324,10 @@ def format_cv_table(cv: dict, class_names) -> str:
 
 
 def _importances(clf, regs, schema) -> str:
-    cols = {"classifier": clf.booster_}
-    for t, r in regs.items():
-        for ax, b in zip("xyz", r.boosters_):
-            cols[f"{t}_{ax}"] = b
-    table = {}
-    for c, b in cols.items():
-        gain = b.get_score(importance_type="total_gain")
-        total = sum(gain.values()) or 1.0
-        table[c] = {n: gain.get(n, 0.0) / total for n in schema.names}
-    lines = ["feature," + ",".join(cols)]
-    order = sorted(schema.names, key=lambda n: -sum(table[c][n] for c in cols))
-    for n in order:
-        lines.append(n + "," + ",".join(f"{table[c][n]:.6f}" for c in cols))
+    table = _gain_table(clf, regs, schema)
+    lines = ["feature," + ",".join(table)]
+    for n in feature_ranking(clf, regs, schema):
+        lines.append(n + "," + ",".join(f"{table[c][n]:.6f}" for c in table))
     return "\n".join(lines) + "\n"
 
 
@@ -290,8 +340,13 @@ def _versions() -> dict:
             "scipy": scipy.__version__, "xgboost": xgboost.__version__, "scikit-learn": sklearn.__version__}
 
 
-def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = True, verbose: bool = True) -> dict:
-    """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out`` and ``timing``."""
+def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = True, verbose: bool = True,
+                 dataset: WindowData | None = None) -> dict:
+    """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out`` and ``timing``.
+
+    ``dataset``: a ``build_dataset`` result that holds (at least) the selected trials, built with
+    this config's label and feature settings, reused instead of rebuilt (sweeps over model
+    settings build it once)."""
     t_start = time.perf_counter()
     cfg = load_config(config)
     run = cfg["run"]
@@ -313,7 +368,13 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
 
     log(f"togglecf train: {len(names)} trials from {index.root} -> {out_dir}")
     t0 = time.perf_counter()
-    data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
+    if dataset is not None:
+        if dataset.settings != _dataset_settings(label_settings, feature_settings, label_settings.ransac):
+            raise ValueError("run_training: the given dataset was built with other label/feature/RANSAC settings "
+                             "than this config's")
+        data = dataset.subset(names)
+    else:
+        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
     timing["dataset_s"] = time.perf_counter() - t0
     log(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
         f"in {timing['dataset_s']:.1f} s")

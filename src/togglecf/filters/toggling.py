@@ -389,8 +389,8 @@ class ModelTogglingFilter(TogglingFilter):
         k = len(models.class_names)
         unused = [k + j for j, w in enumerate([self.settings.noise_weight_acc] * 3 + [self.settings.noise_weight_mag] * 3)
                   if w == 0.0]
-        # trees whose output the filter multiplies by zero are not walked (same result, less time)
-        self._forest = models.forest.without_outputs(unused) if unused else models.forest
+        # the trees this filter walks: those of outputs it multiplies by zero are dropped (same result, less time)
+        self.forest = models.forest.without_outputs(unused) if unused else models.forest
         self._features = StreamingFeatures(self.fs, models.feature_settings)
         from ..features import hop_length
         self.hop = hop_length(self.fs, models.feature_settings.hop_s)
@@ -424,7 +424,7 @@ class ModelTogglingFilter(TogglingFilter):
 
     def _model_args(self):
         return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
-                len(self.models.class_names), *self._forest.arrays(), self._feat, self._margin, self.pred)
+                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred)
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
         if prediction is not None:

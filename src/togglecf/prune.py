@@ -1,0 +1,432 @@
+"""Pruning sweep: model size against the toggling filter's held-out BROAD error.
+
+A sweep point is a model size: trees per booster and tree depth (classifier, regressors) and the
+number of features the trees may use (``[run] max_features``, the most important by gain on
+the same training rows). Every point is judged by what a user deploys, the *toggling filter*
+with those models, under the study's protocol (``study.trial_folds``): per fold, on the
+training trials only, ``run_training`` fits the models (inner CV for out-of-fold predictions,
+then the gains learned on them, 9D); the fold's test trials are then filtered with the models in
+the loop (``ModelTogglingFilter``) and scored with BROAD's total RMSE. Every trial is tested once:
+the point's error is the mean over all trials of models that never saw them.
+
+Sizes are of the trees the filter walks (outputs with a learned noise weight of 0 are dropped):
+
+* ``array_*``: the merged forest in the compact array format (``export.forest_to_c``), object
+  code of ``gcc -Os -c`` for the host and rv32imc (the ESP32-C3's ISA); the largest over the
+  folds' models (conservative);
+* ``tl2cgen_*`` / ``tl2cgen_q_*``: TL2cgen's if/else code (plain / quantized thresholds) of the
+  same boosters, summed over them, from fold 0's models (it is slower to generate);
+* ``ram_bytes``: rv32imc stack of ``tcf_predict`` (``-fstack-usage``) plus the float32 feature
+  row and outputs it reads and writes;
+* ``us_per_prediction``: host time of the array walker per window (gcc -O2), test windows.
+
+The reference point (``reference=True``) is the model's own config, unpruned; it is measured by
+the same code, so "worse than unpruned" compares like with like. Rows are appended to
+``sweep_rows.jsonl`` as points finish, so an interrupted sweep resumes with the missing points.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import itertools
+import json
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["PrunePoint", "default_points", "pruning_sweep", "pareto_front", "choose_point", "write_sweep_report",
+           "format_front", "SIZE_KEYS"]
+
+SIZE_KEYS = {"array": "array_riscv_bytes", "tl2cgen": "tl2cgen_riscv_bytes"}
+HOST_SIZE_KEYS = {"array": "array_host_bytes", "tl2cgen": "tl2cgen_host_bytes"}
+
+
+@dataclass(frozen=True)
+class PrunePoint:
+    """Model size of one sweep point (``max_features`` 0: all features)."""
+
+    clf_trees: int
+    clf_depth: int
+    reg_trees: int
+    reg_depth: int
+    max_features: int = 0
+    reference: bool = False
+
+    @property
+    def key(self) -> str:
+        f = "all" if not self.max_features else str(self.max_features)
+        return f"c{self.clf_trees}x{self.clf_depth}_r{self.reg_trees}x{self.reg_depth}_f{f}"
+
+    def apply(self, cfg: dict) -> dict:
+        """A copy of the training config ``cfg`` with this point's model sizes."""
+        out = {s: dict(v) for s, v in cfg.items()}
+        out["classifier"].update(n_estimators=self.clf_trees, max_depth=self.clf_depth)
+        out["regressor"].update(n_estimators=self.reg_trees, max_depth=self.reg_depth)
+        out["run"]["max_features"] = int(self.max_features)
+        return out
+
+    @classmethod
+    def of_config(cls, cfg: dict, reference: bool = True) -> "PrunePoint":
+        return cls(int(cfg["classifier"].get("n_estimators", 60)), int(cfg["classifier"].get("max_depth", 5)),
+                   int(cfg["regressor"].get("n_estimators", 40)), int(cfg["regressor"].get("max_depth", 4)),
+                   int(cfg["run"].get("max_features", 0) or 0), reference)
+
+
+def default_points(cfg: dict, trees=(10, 15, 20, 30), depths=(3, 4), features=(0, 24, 12)) -> list:
+    """The reference (``cfg``'s own sizes) then every (trees, depth, features) combination,
+    applied alike to the classifier and the regressors."""
+    ref = PrunePoint.of_config(cfg)
+    pts = [ref] + [PrunePoint(n, d, n, d, f) for n, d, f in itertools.product(trees, depths, features)]
+    unique = {}
+    for p in pts:  # a grid point equal to the reference is run once, as the reference
+        unique.setdefault(p.key, p)
+    return list(unique.values())
+
+
+def _log(msg):
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------------ measurements
+
+def _used_boosters(gains) -> list:
+    """Booster names the filter needs with these learned gains (noise weight 0: not needed)."""
+    from .export import BOOSTER_NAMES
+
+    out = ["classifier"]
+    if gains.noise_weight_acc > 0.0:
+        out += [n for n in BOOSTER_NAMES if n.startswith("acc_")]
+    if gains.noise_weight_mag > 0.0:
+        out += [n for n in BOOSTER_NAMES if n.startswith("mag_")]
+    return out
+
+
+def _array_measurements(forest, n_classes: int, X_test, riscv: bool) -> dict:
+    """Object sizes, rv32 stack and host time per prediction of ``forest`` in the array format."""
+    from .export import _ARRAY_HARNESS, _gcc_shared, array_batch_predict, forest_to_c, measure_sizes, stack_usage
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        h, c = forest_to_c(forest, "tcf_", n_classes)
+        (tmp / "tcf_forest.h").write_text(h)
+        src = tmp / "tcf_forest.c"
+        src.write_text(c)
+        size = measure_sizes([src], riscv=riscv)[str(src)]
+        stack = stack_usage(src, [tmp], "tcf_predict") if riscv else None
+        harness = tmp / "harness.c"
+        harness.write_text(_ARRAY_HARNESS.replace("{P}", "tcf_").replace("{U}", "TCF_"))
+        lib = ctypes.CDLL(str(_gcc_shared([harness, src], tmp / "libf.so", [tmp], opt="-O2")))
+        X = np.ascontiguousarray(X_test, np.float32)
+        array_batch_predict(lib, "tcf_", X[:100], forest.n_outputs)  # warm-up
+        t0 = time.perf_counter()
+        array_batch_predict(lib, "tcf_", X, forest.n_outputs)
+        us = 1e6 * (time.perf_counter() - t0) / max(1, len(X))
+    io_bytes = 4 * (forest.n_features + forest.n_outputs)
+    return {"array_host_bytes": size["host"]["total"],
+            "array_riscv_bytes": None if size["riscv"] is None else size["riscv"]["total"],
+            "ram_bytes": None if stack is None else stack + io_bytes, "us_per_prediction": us}
+
+
+def _tl2cgen_sizes(boosters: dict, riscv: bool) -> dict:
+    from .export import _model_sizes, export_tl2cgen_boosters, native_stderr_silenced
+
+    out = {}
+    for quantize, tag in ((False, "tl2cgen"), (True, "tl2cgen_q")):
+        with tempfile.TemporaryDirectory() as tmp, native_stderr_silenced():  # Treelite's version notes, x100
+            rep = export_tl2cgen_boosters(boosters, tmp, quantize=quantize)
+            sizes = _model_sizes(rep, "firmware", riscv=riscv)
+        for target in ("host", "riscv"):
+            vals = [s[target] for s in sizes.values()]
+            out[f"{tag}_{target}_bytes"] = None if any(v is None for v in vals) else int(sum(vals))
+    return out
+
+
+def _used_features(forest) -> int:
+    return int(np.unique(forest.feature[forest.feature >= 0]).size)
+
+
+# ------------------------------------------------------------------------------------- sweep
+
+def _sweep_identity(cfg, names, folds, inner_folds, data_files) -> str:
+    blob = json.dumps({"cfg": {k: v for k, v in cfg.items() if k != "run"}, "seed": cfg["run"]["seed"],
+                       "trials": names, "folds": folds, "inner": inner_folds, "files": data_files},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _load_done(path: Path, identity: str) -> dict:
+    done = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by an interruption
+                continue
+            if rec.get("identity") == identity:
+                done[rec["row"]["key"]] = rec
+    return done
+
+
+def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: int = 3, data_dir=None,
+                  riscv: bool = True, log=_log) -> list:
+    """Run (or resume) the sweep of ``points`` (default ``default_points``) for the model
+    directory ``model_dir``: its config, training trials and gain search, only the model sizes
+    change. Writes ``out_dir/sweep_rows.jsonl`` (one line per finished point, with per-trial
+    errors) and returns the rows (dicts, see the module docstring), in ``points`` order."""
+    from .data import DatasetIndex, resolve_data_dir
+    from .evaluation import trial_errors
+    from .export import RISCV_GCC, bundle_boosters
+    from .features import FeatureSettings
+    from .filters.toggling import load_toggling_filter
+    from .labels import LabelSettings
+    from .models import load_bundle
+    from .study import trial_folds
+    from .train import build_dataset, load_config, run_training
+
+    import shutil
+
+    riscv = riscv and shutil.which(RISCV_GCC) is not None
+    bundle = load_bundle(model_dir)
+    cfg0 = load_config(bundle.metadata["config"])
+    cfg0["gains"].update(learn=True, modes=["9d"])
+    cfg0["run"]["cv_folds"] = inner_folds
+    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    names = index.select(",".join(bundle.metadata["training_trials"]))
+    points = list(points or default_points(cfg0))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows_path = out / "sweep_rows.jsonl"
+    test_sets = trial_folds(names, folds)
+    label_settings = LabelSettings.from_dict({**cfg0["labels"], "seed": cfg0["run"]["seed"]})
+    feature_settings = FeatureSettings.from_dict(cfg0["features"])
+    identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
+    done = _load_done(rows_path, identity)
+    todo = [p for p in points if p.key not in done]
+    log(f"pruning sweep of {model_dir}: {len(points)} points x {folds} folds on {len(names)} trials "
+        f"({len(points) - len(todo)} already done in {rows_path})")
+    if todo:
+        t0 = time.perf_counter()
+        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
+        log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
+        loaded = {}
+    for i, p in enumerate(todo):
+        t0 = time.perf_counter()
+        cfg = p.apply(cfg0)
+        per_trial, array_rows, features_used = [], [], []
+        tl = {}
+        for k, test in enumerate(test_sets):
+            train = [n for n in names if n not in test]
+            fold_dir = out / "runs" / p.key / f"fold{k}"
+            run_training(cfg, data_dir=index.root, trials=",".join(train), out=fold_dir, cv=True, verbose=False,
+                         dataset=data)
+            for n in test:
+                t = loaded.setdefault(n, index.load(n))
+                f = load_toggling_filter(fold_dir, t.fs)
+                o = f.update_batch(t.gyr, t.acc, t.mag)
+                per_trial.append({"trial": n, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement)})
+            X_test = data.subset(test).X
+            array_rows.append(_array_measurements(f.forest, len(f.models.class_names), X_test, riscv))
+            features_used.append(_used_features(f.forest))
+            if k == 0:
+                used = _used_boosters(f.settings)
+                tl = _tl2cgen_sizes({n: b for n, b in bundle_boosters(load_bundle(fold_dir)).items() if n in used},
+                                    riscv)
+        tot = np.array([r["total"] for r in per_trial])
+        worst = max(array_rows, key=lambda r: r["array_host_bytes"])
+        row = {"key": p.key, **asdict(p), "features_used": max(features_used),
+               "mean_total": float(tot.mean()), "mean_heading": float(np.mean([r["heading"] for r in per_trial])),
+               "mean_inclination": float(np.mean([r["inclination"] for r in per_trial])),
+               "max_total": float(tot.max()),
+               "array_host_bytes": worst["array_host_bytes"],
+               "array_riscv_bytes": max((r["array_riscv_bytes"] for r in array_rows if r["array_riscv_bytes"]),
+                                        default=None),
+               "ram_bytes": max((r["ram_bytes"] for r in array_rows if r["ram_bytes"]), default=None),
+               "us_per_prediction": float(np.median([r["us_per_prediction"] for r in array_rows])), **tl,
+               "seconds": time.perf_counter() - t0}
+        rec = {"identity": identity, "row": row, "per_trial": per_trial}
+        with open(rows_path, "a") as fh:  # one complete line per point: an interruption loses at most one point
+            fh.write(json.dumps(rec) + "\n")
+            fh.flush()
+        done[p.key] = rec
+        log(f"[{i + 1}/{len(todo)}] {p.key}: mean total {row['mean_total']:.3f}°, "
+            f"rv32 array {_kib(row['array_riscv_bytes'])}, tl2cgen {_kib(row.get('tl2cgen_riscv_bytes'))} "
+            f"({row['seconds']:.0f} s)")
+    return [done[p.key]["row"] for p in points]
+
+
+def _kib(v) -> str:
+    return "-" if v is None else f"{v / 1024:.1f} KiB"
+
+
+# ----------------------------------------------------------------------------------- results
+
+def pareto_front(rows, size_key: str = "array_riscv_bytes", score_key: str = "mean_total") -> list:
+    """The rows no other row beats on both size (smaller) and error (smaller)."""
+    ok = [r for r in rows if r.get(size_key) is not None]
+    return [r for r in ok if not any(o[size_key] <= r[size_key] and o[score_key] <= r[score_key]
+                                     and (o[size_key] < r[size_key] or o[score_key] < r[score_key]) for o in ok)]
+
+
+def choose_point(rows, max_bytes: int, size_key: str = "array_riscv_bytes") -> dict:
+    """The most accurate row (lowest held-out mean total RMSE) whose ``size_key`` is within
+    ``max_bytes``; ``ValueError`` naming the smallest available size when none fits."""
+    fits = [r for r in rows if r.get(size_key) is not None and r[size_key] <= max_bytes]
+    if not fits:
+        sized = [r for r in rows if r.get(size_key) is not None]
+        if not sized:
+            raise ValueError(f"no sweep row has {size_key} (RISC-V sizes need {size_key.split('_')[0]} rows measured "
+                             "with riscv64-unknown-elf-gcc; use the host size key or install the cross compiler)")
+        small = min(sized, key=lambda r: r[size_key])
+        raise ValueError(f"no sweep point fits in {max_bytes} bytes ({size_key}); the smallest is {small['key']} "
+                         f"with {small[size_key]} bytes: add smaller points to the sweep or raise --max-bytes")
+    return min(fits, key=lambda r: (r["mean_total"], r[size_key]))
+
+
+_COLUMNS = ("key", "reference", "clf_trees", "clf_depth", "reg_trees", "reg_depth", "max_features", "features_used",
+            "mean_total", "mean_heading", "mean_inclination", "max_total", "array_riscv_bytes", "array_host_bytes",
+            "tl2cgen_riscv_bytes", "tl2cgen_host_bytes", "tl2cgen_q_riscv_bytes", "tl2cgen_q_host_bytes",
+            "ram_bytes", "us_per_prediction", "pareto", "seconds")
+
+
+def write_sweep_report(rows, out_dir, size_key: str = "array_riscv_bytes", max_bytes: int | None = None) -> dict:
+    """``sweep.csv`` (every point, ``pareto`` marks the front on ``size_key``), ``pareto.csv``,
+    ``pareto.png`` (error against size, front and budget marked). Returns the paths."""
+    import pandas as pd
+
+    from .io import atomic_write_text
+
+    out = Path(out_dir)
+    front = {r["key"] for r in pareto_front(rows, size_key)}
+    df = pd.DataFrame([{c: (r.get(c) if c != "pareto" else r["key"] in front) for c in _COLUMNS} for r in rows])
+    df = df.sort_values([size_key, "mean_total"], na_position="last")
+    paths = {"sweep": out / "sweep.csv", "pareto": out / "pareto.csv", "plot": out / "pareto.png"}
+    atomic_write_text(paths["sweep"], df.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(paths["pareto"], df[df["pareto"]].to_csv(index=False, float_format="%.6g"))
+    _plot(df, size_key, max_bytes, paths["plot"])
+    return paths
+
+
+def _plot(df, size_key, max_bytes, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_write_bytes
+    from .report import _png
+
+    d = df[df[size_key].notna()]
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for nf, g in d.groupby("max_features"):
+        ax.scatter(g[size_key] / 1024, g["mean_total"], label=f"features: {'all' if nf == 0 else nf}", s=28)
+    front = d[d["pareto"]].sort_values(size_key)
+    ax.step(front[size_key] / 1024, front["mean_total"], where="post", color="k", lw=1, label="Pareto front")
+    ref = d[d["reference"]]
+    if len(ref):
+        ax.scatter(ref[size_key] / 1024, ref["mean_total"], marker="*", s=160, color="crimson",
+                   label="unpruned (reference)", zorder=5)
+        ax.axhline(float(ref["mean_total"].iloc[0]) + 0.1, color="crimson", ls=":", lw=1, label="reference + 0.1°")
+    if max_bytes:
+        ax.axvline(max_bytes / 1024, color="grey", ls="--", lw=1, label=f"budget {max_bytes / 1024:.0f} KiB")
+    ax.set_xscale("log")
+    ax.set_xlabel(f"model object code [KiB] ({size_key.replace('_', ' ')}, gcc -Os)")
+    ax.set_ylabel("held-out mean total RMSE [°]")
+    ax.set_title("Toggling CF: model size vs. held-out BROAD error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    atomic_write_bytes(path, _png(fig))
+    plt.close(fig)
+
+
+def format_front(rows, size_key: str = "array_riscv_bytes") -> str:
+    """The Pareto front as a text table (printed by the CLI)."""
+    front = sorted(pareto_front(rows, size_key), key=lambda r: r[size_key])
+    ref = next((r for r in rows if r["reference"]), None)
+    lines = [f"{'point':<22} {'feat':>4} {'rv32 array':>10} {'rv32 tl2cgen':>12} {'RAM':>6} {'µs/pred':>7} "
+             f"{'total°':>7} {'Δref°':>6}"]
+    for r in front + ([ref] if ref and ref not in front else []):
+        d = "" if ref is None else f"{r['mean_total'] - ref['mean_total']:+.3f}"
+        lines.append(f"{r['key'] + ('*' if r['reference'] else ''):<22} {r['features_used']:>4} "
+                     f"{_kib(r.get('array_riscv_bytes')):>10} {_kib(r.get('tl2cgen_riscv_bytes')):>12} "
+                     f"{'-' if r.get('ram_bytes') is None else r['ram_bytes']:>6} {r['us_per_prediction']:>7.2f} "
+                     f"{r['mean_total']:>7.3f} {d:>6}")
+    lines.append("* reference: the model's own (unpruned) settings; sizes of the trees the filter walks")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------- CLI
+
+def _ints(text: str) -> tuple:
+    try:
+        vals = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"expected comma-separated integers, got {text!r}") from None
+    if not vals or min(vals) < 0:
+        raise ValueError(f"expected non-negative integers, got {text!r}")
+    return vals
+
+
+def add_sweep_arguments(sp):
+    """The grid and protocol options shared by ``togglecf prune`` and ``togglecf export --max-bytes``
+    (both also have ``--models``, ``--data`` and ``--no-riscv``)."""
+    sp.add_argument("--trees", default="10,15,20,30", metavar="LIST", help="trees per booster (default: 10,15,20,30)")
+    sp.add_argument("--depths", default="3,4", metavar="LIST", help="tree depths (default: 3,4)")
+    sp.add_argument("--features", default="0,24,12", metavar="LIST",
+                    help="number of most important features the trees may use, 0 = all (default: 0,24,12)")
+    sp.add_argument("--folds", type=int, default=5, help="held-out folds by whole trial (default: 5, as the study)")
+    sp.add_argument("--inner-folds", type=int, default=3, help="CV folds inside each training set, whose "
+                    "out-of-fold predictions the gains are learned on (default: 3, as the study)")
+
+
+def sweep_from_args(args, sweep_dir, log=_log) -> list:
+    from .models import load_bundle
+    from .train import load_config
+
+    cfg = load_config(load_bundle(args.models).metadata["config"])
+    pts = default_points(cfg, _ints(args.trees), _ints(args.depths), _ints(args.features))
+    return pruning_sweep(args.models, sweep_dir, pts, folds=args.folds, inner_folds=args.inner_folds,
+                         data_dir=args.data, riscv=not args.no_riscv, log=log)
+
+
+def add_prune_parser(subparsers):
+    sp = subparsers.add_parser("prune", help="pruning sweep: model size against the toggling filter's held-out "
+                               "BROAD error; Pareto front as CSV and plot")
+    sp.add_argument("--models", required=True, metavar="DIR", help="the `togglecf train` model directory to prune "
+                    "(its config, training trials and gain search are kept; only model sizes change)")
+    sp.add_argument("--out", required=True, metavar="DIR", help="sweep directory (resumable: finished points "
+                    "are kept in DIR/sweep_rows.jsonl)")
+    sp.add_argument("--max-bytes", type=int, metavar="N", help="mark this budget and name the best point within it")
+    sp.add_argument("--format", choices=tuple(SIZE_KEYS), default="array",
+                    help="code format whose RISC-V object size is the size axis (default: array)")
+    add_sweep_arguments(sp)
+    sp.add_argument("--data", metavar="DIR", help="BROAD directory")
+    sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
+    sp.set_defaults(func=cmd_prune)
+    return sp
+
+
+def size_key(fmt: str, riscv: bool) -> str:
+    """The sweep column that measures ``fmt``'s size: RISC-V object code, or the host's without it."""
+    return SIZE_KEYS[fmt] if riscv else HOST_SIZE_KEYS[fmt]
+
+
+def cmd_prune(args) -> int:
+    from .export import RISCV_GCC
+
+    import shutil
+
+    rows = sweep_from_args(args, args.out)
+    key = size_key(args.format, not args.no_riscv and shutil.which(RISCV_GCC) is not None)
+    paths = write_sweep_report(rows, args.out, key, args.max_bytes)
+    print(format_front(rows, key))
+    print(f"wrote {paths['sweep']}, {paths['pareto']}, {paths['plot']}")
+    if args.max_bytes:
+        best = choose_point(rows, args.max_bytes, key)
+        ref = next(r for r in rows if r["reference"])
+        print(f"best within {args.max_bytes} bytes: {best['key']} ({best[key]} bytes, mean total "
+              f"{best['mean_total']:.3f}°, {best['mean_total'] - ref['mean_total']:+.3f}° vs unpruned)")
+    return 0

@@ -647,6 +647,8 @@ def add_export_parser(subparsers):
                     help="trials whose windows are checked (default: all present)")
     sp.add_argument("--no-check", action="store_true", help="skip the equivalence check (no data needed)")
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
+    sp.add_argument("--6d", dest="six_d", action="store_true",
+                    help="C filter without magnetometer (6D gains from gains.json)")
     sp.add_argument("--max-bytes", type=int, metavar="N",
                     help="flash budget: run (or resume) the pruning sweep of --models in OUT/sweep, pick the point "
                     "with the lowest held-out error whose RISC-V object code (array format; tl2cgen with "
@@ -741,6 +743,29 @@ def cmd_export(args) -> int:
             print(f"  equivalence (≤ {TOLERANCE:g}) on {rep['n_rows_checked']} windows: "
                   f"{'OK' if rep['ok'] else 'FAILED'} (max {rep['max_abs_diff']:.2e})")
             ok &= rep["ok"]
+    filter_dir = Path(args.out) / "filter"
+    if (Path(args.models) / "gains.json").is_file():
+        from .cfilter import export_c_filter
+
+        fs = float(load_bundle(args.models).metadata["sampling_rate"])
+        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
+        forest_size = rep["object_sizes"]["tcf_forest.c"]
+        rep["forest_bytes"] = forest_size
+        reports["filter"] = rep
+        linked = rep.get("linked_riscv")
+        print(f"C filter ({'6D' if args.six_d else '9D'}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+              f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
+              f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
+              + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
+        if choice is not None:  # the budget holds for what ships: the filter's trees
+            got = (forest_size["riscv"] or forest_size["host"])["total"]
+            choice["filter_forest_bytes"] = got
+            if got > args.max_bytes:
+                print(f"error: the final models' trees take {got} bytes, over the budget of {args.max_bytes} "
+                      "(the sweep measured the folds' models): choose a smaller --max-bytes", file=sys.stderr)
+                ok = False
+    else:
+        print(f"(no C filter: {Path(args.models) / 'gains.json'} is missing; `togglecf train` learns the gains)")
     if not riscv:
         print(f"(no RISC-V sizes: {RISCV_GCC} not installed or --no-riscv)")
     if choice is not None:

@@ -18,6 +18,10 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
 * ``acc_hp_x/y/z = a_k − p_{k−1}``, ``p`` the EMA of ``a`` with ``lp_tau_s`` (``p_{−1} = a_0``): the
   fast part of the specific force, a proxy for linear acceleration and vibration.
 
+Non-finite input samples: a window that holds a non-finite value of a channel gives NaN
+statistics of that channel (missing values for the trees); the EMA references hold over bad
+samples and start at the first finite one.
+
 Window statistics over ``[k−L+1, k]`` (``WINDOW_CHANNELS``): ``mean``, ``std`` (population,
 ``sqrt(max(0, E[(x−c)²] − E[x−c]²))`` with ``c`` the channel's value at sample 0, a shift that
 only improves rounding), ``min``, ``max``; plus ``gyr_energy_mean``; plus the current value
@@ -34,6 +38,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.ndimage import maximum_filter1d, minimum_filter1d
+from numba import njit
 from scipy.signal import lfilter
 
 from .data import GRAVITY
@@ -156,12 +161,39 @@ def window_end_indices(n: int, fs: float, hop: float, window: float | None = Non
 
 
 def _ema_lagged(x: np.ndarray, lam: float) -> np.ndarray:
-    """``r_{k−1}`` of the EMA ``r_k = λ r_{k−1} + (1−λ) x_k`` with ``r_{−1} = x_0`` (axis 0)."""
-    r = lfilter([1.0 - lam], [1.0, -lam], x, axis=0, zi=lam * x[:1])[0]
-    out = np.empty_like(r)
-    out[0] = x[0]
-    out[1:] = r[:-1]
+    """``r_{k−1}`` of the EMA ``r_k = λ r_{k−1} + (1−λ) x_k`` with ``r_{−1} = x_0`` (axis 0).
+
+    Rows of ``x`` (N, C) with a non-finite value leave ``r`` unchanged, and ``r`` starts at the
+    first finite row (as ``streaming_features.push_sample``; NaN before it)."""
+    if np.isfinite(x).all():
+        r = lfilter([1.0 - lam], [1.0, -lam], x, axis=0, zi=lam * x[:1])[0]
+        out = np.empty_like(r)
+        out[0] = x[0]
+        out[1:] = r[:-1]
+        return out
+    out = np.empty_like(x)
+    _ema_lagged_holding(np.ascontiguousarray(x, np.float64), lam, out)
     return out
+
+
+@njit(cache=True)
+def _ema_lagged_holding(x, lam, out):
+    """The same recursion and rounding as ``lfilter`` (``(1−λ) x + λ r``), holding over bad rows."""
+    n, c = x.shape
+    r = x[0].copy()  # NaN when row 0 is bad: then the first finite row starts it
+    for k in range(n):
+        out[k] = r
+        ok = True
+        for j in range(c):
+            if not np.isfinite(x[k, j]):
+                ok = False
+        if ok:
+            started = True
+            for j in range(c):
+                if not np.isfinite(r[j]):
+                    started = False
+            for j in range(c):
+                r[j] = (1.0 - lam) * x[k, j] + lam * r[j] if started else x[k, j]
 
 
 def per_sample_channels(gyr, acc, mag, fs: float, settings: FeatureSettings) -> dict:
@@ -212,21 +244,36 @@ def compute_features(gyr, acc, mag, fs: float, settings: FeatureSettings | None 
     W = np.empty((len(WINDOW_CHANNELS), n))  # channels in rows: contiguous along time
     for i, c in enumerate(WINDOW_CHANNELS):
         W[i] = ch[c]
+    hi, lo = ends + 1, ends + 1 - L
+    bad = ~np.isfinite(W)
+    has_bad = bad.any()
+    if has_bad:  # a window with a non-finite value of a channel gives NaN stats of it (missing)
+        nbad = np.zeros((W.shape[0], n + 1))
+        np.cumsum(bad, axis=1, out=nbad[:, 1:])
+        bad_window = (nbad[:, hi] - nbad[:, lo]) > 0
+        W = np.where(bad, 0.0, W)
     W0 = W - W[:, :1]
     c1 = np.zeros((W.shape[0], n + 1))
     c2 = np.zeros((W.shape[0], n + 1))
     np.cumsum(W0, axis=1, out=c1[:, 1:])
     np.multiply(W0, W0, out=W0)
     np.cumsum(W0, axis=1, out=c2[:, 1:])
-    hi, lo = ends + 1, ends + 1 - L
     mean0 = (c1[:, hi] - c1[:, lo]) / L
     var = np.maximum((c2[:, hi] - c2[:, lo]) / L - mean0 * mean0, 0.0)
     mean = mean0 + W[:, :1]
     std = np.sqrt(var)
     mn, mx = _window_min_max(W, ends, L)
+    if has_bad:
+        for a in (mean, std, mn, mx):
+            a[bad_window] = np.nan
     stats = np.stack([mean, std, mn, mx], axis=2).transpose(1, 0, 2).reshape(len(ends), -1)  # channel-major
-    ge = np.concatenate([[0.0], np.cumsum(ch["gyr_energy"])])
+    ge_ch = ch["gyr_energy"]
+    ge_bad = ~np.isfinite(ge_ch)
+    ge = np.concatenate([[0.0], np.cumsum(np.where(ge_bad, 0.0, ge_ch))])
     ge_mean = ((ge[hi] - ge[lo]) / L)[:, None]
+    if ge_bad.any():
+        nb = np.concatenate([[0], np.cumsum(ge_bad)])
+        ge_mean[(nb[hi] - nb[lo]) > 0] = np.nan
     last = np.stack([ch[c][ends] for c in LAST_CHANNELS], axis=1)
     X = np.concatenate([stats, ge_mean, last], axis=1)
     return X, ends

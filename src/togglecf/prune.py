@@ -76,7 +76,7 @@ class PrunePoint:
                    int(cfg["run"].get("max_features", 0) or 0), reference)
 
 
-def default_points(cfg: dict, trees=(10, 15, 20, 30), depths=(3, 4), features=(0, 24, 12)) -> list:
+def default_points(cfg: dict, trees=(10, 20, 30), depths=(3, 4), features=(0, 24, 12)) -> list:
     """The reference (``cfg``'s own sizes) then every (trees, depth, features) combination,
     applied alike to the classifier and the regressors."""
     ref = PrunePoint.of_config(cfg)
@@ -93,16 +93,12 @@ def _log(msg):
 
 # ------------------------------------------------------------------------------ measurements
 
-def _used_boosters(gains) -> list:
-    """Booster names the filter needs with these learned gains (noise weight 0: not needed)."""
+def _used_boosters(forest, n_classes: int) -> list:
+    """Booster names whose trees the filter's ``forest`` holds (unused outputs are dropped)."""
     from .export import BOOSTER_NAMES
 
-    out = ["classifier"]
-    if gains.noise_weight_acc > 0.0:
-        out += [n for n in BOOSTER_NAMES if n.startswith("acc_")]
-    if gains.noise_weight_mag > 0.0:
-        out += [n for n in BOOSTER_NAMES if n.startswith("mag_")]
-    return out
+    groups = set(np.unique(forest.tree_group).tolist())
+    return ["classifier"] + [n for j, n in enumerate(BOOSTER_NAMES[1:]) if n_classes + j in groups]
 
 
 def _array_measurements(forest, n_classes: int, X_test, riscv: bool) -> dict:
@@ -232,7 +228,7 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
             array_rows.append(_array_measurements(f.forest, len(f.models.class_names), X_test, riscv))
             features_used.append(_used_features(f.forest))
             if k == 0:
-                used = _used_boosters(f.settings)
+                used = _used_boosters(f.forest, len(f.models.class_names))
                 tl = _tl2cgen_sizes({n: b for n, b in bundle_boosters(load_bundle(fold_dir)).items() if n in used},
                                     riscv)
         tot = np.array([r["total"] for r in per_trial])
@@ -373,7 +369,7 @@ def _ints(text: str) -> tuple:
 def add_sweep_arguments(sp):
     """The grid and protocol options shared by ``togglecf prune`` and ``togglecf export --max-bytes``
     (both also have ``--models``, ``--data`` and ``--no-riscv``)."""
-    sp.add_argument("--trees", default="10,15,20,30", metavar="LIST", help="trees per booster (default: 10,15,20,30)")
+    sp.add_argument("--trees", default="10,20,30", metavar="LIST", help="trees per booster (default: 10,20,30)")
     sp.add_argument("--depths", default="3,4", metavar="LIST", help="tree depths (default: 3,4)")
     sp.add_argument("--features", default="0,24,12", metavar="LIST",
                     help="number of most important features the trees may use, 0 = all (default: 0,24,12)")

@@ -9,8 +9,9 @@ rounding (mean/std are summed directly here, from shifted cumulative sums there)
 Layout: ``ring (L, N_RING)`` holds ``WINDOW_CHANNELS`` then ``gyr_energy`` per sample;
 ``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(13)]`` and
 ``params`` ``[fs, L, λ_ref, λ_lp, gravity]``. Non-finite samples do not update the EMA
-references (so one bad sample cannot poison them for the rest of a run); their channels
-enter the ring as NaN, which the trees treat as missing values.
+references (so one bad sample cannot poison them for the rest of a run; when the first
+samples are bad, the references start at the first finite one); their channels enter the ring
+as NaN, which the trees treat as missing values.
 """
 from __future__ import annotations
 
@@ -55,6 +56,7 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
         aux[2] = mn
         aux[3] = dip
         aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
+        aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]
         jerk = 0.0
     else:
         dx, dy, dz = acc[0] - aux[7], acc[1] - aux[8], acc[2] - aux[9]
@@ -74,14 +76,21 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     for j in range(last_src.shape[0]):
         s = last_src[j]
         aux[10 + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
-    # update the references with sample k (only from finite values)
+    # update the references with sample k, only from finite values; a reference that is not
+    # finite yet (the first samples were bad) starts at the first finite sample
     if math.isfinite(mn) and math.isfinite(dip):
-        aux[2] = lam_ref * aux[2] + (1.0 - lam_ref) * mn
-        aux[3] = lam_ref * aux[3] + (1.0 - lam_ref) * dip
+        if math.isfinite(aux[2]) and math.isfinite(aux[3]):
+            aux[2] = lam_ref * aux[2] + (1.0 - lam_ref) * mn
+            aux[3] = lam_ref * aux[3] + (1.0 - lam_ref) * dip
+        else:
+            aux[2], aux[3] = mn, dip
     if math.isfinite(an):
-        for i in range(3):
-            aux[4 + i] = lam_lp * aux[4 + i] + (1.0 - lam_lp) * acc[i]
-        aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]
+        if math.isfinite(aux[4]) and math.isfinite(aux[5]) and math.isfinite(aux[6]):
+            for i in range(3):
+                aux[4 + i] = lam_lp * aux[4 + i] + (1.0 - lam_lp) * acc[i]
+        else:
+            aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
+    aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]  # jerk next to a bad sample is missing, as in features
     aux[0] = count + 1
     aux[1] = (pos + 1) % L
 
@@ -102,6 +111,10 @@ def window_features(ring, aux, out):
                 lo = v
             if v > hi:
                 hi = v
+        if not math.isfinite(s):  # a non-finite value in the window: the channel's stats are missing
+            for j in range(4):
+                out[4 * c + j] = math.nan
+            continue
         mean = s / L
         ss = 0.0
         for i in range(L):
@@ -114,7 +127,7 @@ def window_features(ring, aux, out):
     e = 0.0
     for i in range(L):
         e += ring[i, nw]
-    out[4 * nw] = e / L
+    out[4 * nw] = e / L if math.isfinite(e) else math.nan
     n_last = aux.shape[0] - 10
     for j in range(n_last):
         out[4 * nw + 1 + j] = aux[10 + j]

@@ -387,9 +387,11 @@ class ModelTogglingFilter(TogglingFilter):
             raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
         self.models = models
         k = len(models.class_names)
-        unused = [k + j for j, w in enumerate([self.settings.noise_weight_acc] * 3 + [self.settings.noise_weight_mag] * 3)
-                  if w == 0.0]
-        # the trees this filter walks: those of outputs it multiplies by zero are dropped (same result, less time)
+        s = self.settings
+        # η̂_m enters step 3 (weight w_m) and step 4 (σ_m > 0), and only in 9D
+        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
+        unused = [k + j for j in range(3) if s.noise_weight_acc == 0.0] + [k + 3 + j for j in range(3) if not mag_needed]
+        # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
         self.forest = models.forest.without_outputs(unused) if unused else models.forest
         self._features = StreamingFeatures(self.fs, models.feature_settings)
         from ..features import hop_length

@@ -1,0 +1,442 @@
+/* tcf_filter.c: the toggling-gain CF of togglecf in C99, float32 (API in tcf_filter.h).
+ *
+ * Line-by-line port of (togglecf/...):
+ *   streaming_features.py  push_sample, window_features     -> tcf_push_sample, tcf_window_features
+ *   filters/toggling.py    inloop_step, _gains, toggle_step  -> tcf_filter_update_dt, tcf_gains, tcf_toggle_step
+ *   filters/base.py        vector_ok, gyro_increment, acc_mag_quaternion
+ *   quaternion.py          multiply/normalize/rotate/from_rotvec/from_matrix/from_acc_mag (_scalar)
+ * The comments "step N" refer to the steps of the module docstring of filters/toggling.py.
+ */
+#include <math.h>
+#include <stddef.h>
+#include "tcf_filter.h"
+
+/* compile-time check of the documented state size (C99: a negative array size is an error) */
+typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
+typedef char tcf_n_features_check[(TCF_N_FEATURES == 4 * (TCF_RING_COLS - 1) + 1 + TCF_N_LAST) ? 1 : -1];
+
+/* filters/base.py GYRO_FULL_SCALE: a gyro axis at or beyond it is saturated [rad/s] */
+#define TCF_GYRO_FULL_SCALE 34.9f
+
+static const float tcf_alpha_acc[TCF_N_CLASSES] = TCF_ALPHA_ACC_INIT;
+static const float tcf_alpha_mag[TCF_N_CLASSES] = TCF_ALPHA_MAG_INIT;
+
+/* ------------------------------------------------------------------ quaternion.py (_scalar) */
+
+static void q_mul(const float p[4], const float q[4], float out[4]) {
+  float r[4];
+  r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
+  r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
+  r[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
+  r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
+  out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
+}
+
+/* unit quaternion; identity for a zero or non-finite input (normalize_scalar) */
+static void q_normalize(float q[4]) {
+  float n = sqrtf(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  if (!(n > 1e-12f) || !isfinite(n)) {
+    q[0] = 1.0f; q[1] = 0.0f; q[2] = 0.0f; q[3] = 0.0f;
+    return;
+  }
+  q[0] /= n; q[1] /= n; q[2] /= n; q[3] /= n;
+}
+
+/* rotate v from sensor to earth by q (rotate_scalar); conj = 1: by q* (rotate_inverse_scalar) */
+static void q_rotate(const float q[4], int conj, const float v[3], float out[3]) {
+  float w = q[0], x = conj ? -q[1] : q[1], y = conj ? -q[2] : q[2], z = conj ? -q[3] : q[3];
+  float tx = 2.0f * (y * v[2] - z * v[1]);
+  float ty = 2.0f * (z * v[0] - x * v[2]);
+  float tz = 2.0f * (x * v[1] - y * v[0]);
+  float r0 = v[0] + w * tx + y * tz - z * ty;
+  float r1 = v[1] + w * ty + z * tx - x * tz;
+  float r2 = v[2] + w * tz + x * ty - y * tx;
+  out[0] = r0; out[1] = r1; out[2] = r2;
+}
+
+/* exponential map of a rotation vector [rad] (from_rotvec_scalar) */
+static void q_from_rotvec(float rx, float ry, float rz, float q[4]) {
+  float angle = sqrtf(rx * rx + ry * ry + rz * rz);
+  float k = angle < 1e-6f ? 0.5f - angle * angle / 48.0f : sinf(0.5f * angle) / angle;
+  q[0] = cosf(0.5f * angle); q[1] = k * rx; q[2] = k * ry; q[3] = k * rz;
+}
+
+/* Shepperd's method on a row-major rotation matrix, w >= 0 (from_matrix_scalar) */
+static void q_from_matrix(const float r[9], float q[4]) {
+  float tr = r[0] + r[4] + r[8];
+  if (tr >= r[0] && tr >= r[4] && tr >= r[8]) {
+    q[0] = 1.0f + tr; q[1] = r[7] - r[5]; q[2] = r[2] - r[6]; q[3] = r[3] - r[1];
+  } else if (r[0] >= r[4] && r[0] >= r[8]) {
+    q[0] = r[7] - r[5]; q[1] = 1.0f + r[0] - r[4] - r[8]; q[2] = r[1] + r[3]; q[3] = r[2] + r[6];
+  } else if (r[4] >= r[8]) {
+    q[0] = r[2] - r[6]; q[1] = r[1] + r[3]; q[2] = 1.0f - r[0] + r[4] - r[8]; q[3] = r[5] + r[7];
+  } else {
+    q[0] = r[3] - r[1]; q[1] = r[2] + r[6]; q[2] = r[5] + r[7]; q[3] = 1.0f - r[0] - r[4] + r[8];
+  }
+  q_normalize(q);
+  if (q[0] < 0.0f) { q[0] = -q[0]; q[1] = -q[1]; q[2] = -q[2]; q[3] = -q[3]; }
+}
+
+/* sensor -> ENU from one acc and one mag vector; 0 for zero-norm or parallel inputs
+   (from_acc_mag_scalar) */
+static int q_from_acc_mag(const float a[3], const float m[3], float q[4]) {
+  float r[9], ne, na = sqrtf(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+  float ux, uy, uz, ex, ey, ez;
+  q[0] = 1.0f; q[1] = 0.0f; q[2] = 0.0f; q[3] = 0.0f;
+  if (!(na > 1e-9f)) return 0;
+  ux = a[0] / na; uy = a[1] / na; uz = a[2] / na;
+  ex = m[1] * uz - m[2] * uy; ey = m[2] * ux - m[0] * uz; ez = m[0] * uy - m[1] * ux;  /* east = mag x up */
+  ne = sqrtf(ex * ex + ey * ey + ez * ez);
+  if (!(ne > 1e-9f)) return 0;
+  ex /= ne; ey /= ne; ez /= ne;
+  r[0] = ex; r[1] = ey; r[2] = ez;
+  r[3] = uy * ez - uz * ey; r[4] = uz * ex - ux * ez; r[5] = ux * ey - uy * ex;  /* north = up x east */
+  r[6] = ux; r[7] = uy; r[8] = uz;
+  q_from_matrix(r, q);
+  return 1;
+}
+
+/* ------------------------------------------------------------------ filters/base.py */
+
+/* finite, non-zero 3-vector (vector_ok) */
+static int vector_ok(const float v[3]) {
+  float n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  return isfinite(n2) && n2 > 1e-18f;
+}
+
+/* exp(w dt / 2), 0 (dq = identity) for a non-finite or saturated w or an invalid dt
+   (gyro_increment; the comparisons are false for NaN) */
+static int gyro_increment(const float w[3], float dt, float dq[4]) {
+  dq[0] = 1.0f; dq[1] = 0.0f; dq[2] = 0.0f; dq[3] = 0.0f;
+  if (!(fabsf(w[0]) < TCF_GYRO_FULL_SCALE && fabsf(w[1]) < TCF_GYRO_FULL_SCALE && fabsf(w[2]) < TCF_GYRO_FULL_SCALE))
+    return 0;
+  if (!(isfinite(dt) && dt > 0.0f && dt <= TCF_MAX_DT)) return 0;
+  q_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt, dq);
+  return 1;
+}
+
+/* acc/mag orientation (9D), or q_ref tilted onto the measured up direction (6D, or mag not
+   valid); returned in the hemisphere of q_ref (acc_mag_quaternion) */
+static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const float mag[3], int mag_ok,
+                              float q[4]) {
+  int ok;
+  if (mag_ok) {
+    ok = q_from_acc_mag(acc, mag, q);
+  } else {
+    float g[3] = {0.0f, 0.0f, 1.0f}, dq[4];
+    float na = sqrtf(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]);
+    ok = na > 1e-9f;
+    if (ok) {
+      float u[3];
+      u[0] = acc[0] / na; u[1] = acc[1] / na; u[2] = acc[2] / na;
+      q_rotate(q_ref, 0, u, g);
+    }
+    if (1.0f + g[2] > 1e-9f) {  /* rotation taking g onto +z */
+      dq[0] = 1.0f + g[2]; dq[1] = g[1]; dq[2] = -g[0]; dq[3] = 0.0f;
+      q_normalize(dq);
+    } else {  /* measured up is predicted down: any horizontal axis will do */
+      dq[0] = 0.0f; dq[1] = 1.0f; dq[2] = 0.0f; dq[3] = 0.0f;
+    }
+    q_mul(dq, q_ref, q);
+  }
+  if (q[0] * q_ref[0] + q[1] * q_ref[1] + q[2] * q_ref[2] + q[3] * q_ref[3] < 0.0f) {
+    q[0] = -q[0]; q[1] = -q[1]; q[2] = -q[2]; q[3] = -q[3];
+  }
+  return ok;
+}
+
+/* ------------------------------------------------------------------ streaming_features.py */
+
+/* Exponential moving average r <- lam r + (1 - lam) x = r + c (x - r), c = 1 - lam, kept as an
+   unevaluated sum hi + lo (compensated, as Kahan summation). A plain float32 EMA with c ~ 3.5e-4
+   loses up to half an ulp of r per sample against c (x - r) (a dead band of up to
+   ulp(r) / (2 c), ~5e-3 uT at |m| ~ 50 uT); measured on BROAD trial 05 the plain form puts
+   mag_norm_dev up to 1.4e-4 uT off the float64 reference, hi + lo 5e-6 uT (dip_dev 3.6e-6 vs
+   1.2e-6 rad, acc_hp 8.8e-6 vs 6.1e-7 m/s^2). Costs 5 floats of state. */
+static void ema_update(float *hi, float *lo, float c, float x) {
+  float y = *lo + c * ((x - *hi) - *lo);  /* the amount to add to hi */
+  float t = *hi + y;
+  float yv = t - *hi;
+  *lo = (*hi - (t - yv)) + (y - yv);  /* exact rounding error of hi + y (TwoSum) */
+  *hi = t;
+}
+
+/* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
+   0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8-10 mag, 11 |mag|, 12 jerk, 13 mag_norm_dev,
+   14 dip_dev, 15 |gyr|^2 (gyr_energy). */
+static void tcf_push_sample(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  float *row = f->ring[f->pos];
+  float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];
+  float an = sqrtf(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]);
+  float mn = sqrtf(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]);
+  float cosang = an * mn > 0.0f ? (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) : 0.0f;
+  float dip, jerk, c;
+  int i;
+  if (!isfinite(cosang)) cosang = 0.0f;  /* nan_to_num, as the vectorised version */
+  c = -cosang;
+  c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
+  dip = asinf(c);
+  if (f->n_filled == 0) {  /* EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
+    f->ref_mag = mn;
+    f->ref_dip = dip;
+    f->ref_mag_lo = 0.0f;
+    f->ref_dip_lo = 0.0f;
+    for (i = 0; i < 3; ++i) {
+      f->acc_lp[i] = acc[i];
+      f->acc_lp_lo[i] = 0.0f;
+      f->prev_acc[i] = acc[i];
+    }
+    jerk = 0.0f;
+  } else {
+    float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
+    jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
+  }
+  row[0] = gyr[0]; row[1] = gyr[1]; row[2] = gyr[2];
+  row[3] = sqrtf(gn2);
+  row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
+  row[7] = an - TCF_GRAVITY;
+  row[8] = mag[0]; row[9] = mag[1]; row[10] = mag[2];
+  row[11] = mn;
+  row[12] = jerk;
+  row[13] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
+  row[14] = (dip - f->ref_dip) - f->ref_dip_lo;
+  row[15] = gn2;
+  /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_x/y/z, mag_norm_dev, dip_dev, acc_hp_x/y/z */
+  f->last[0] = row[3];
+  f->last[1] = row[4]; f->last[2] = row[5]; f->last[3] = row[6];
+  f->last[4] = row[7];
+  f->last[5] = row[8]; f->last[6] = row[9]; f->last[7] = row[10];
+  f->last[8] = row[13];
+  f->last[9] = row[14];
+  for (i = 0; i < 3; ++i) f->last[10 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
+  /* update the references with sample k, only from finite values; a reference that is not
+     finite yet (the first samples were bad) starts at the first finite sample */
+  if (isfinite(mn) && isfinite(dip)) {
+    if (isfinite(f->ref_mag) && isfinite(f->ref_dip)) {
+      ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
+      ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
+    } else {
+      f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
+    }
+  }
+  if (isfinite(an)) {
+    if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
+      for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
+    } else {
+      for (i = 0; i < 3; ++i) { f->acc_lp[i] = acc[i]; f->acc_lp_lo[i] = 0.0f; }
+    }
+  }
+  /* jerk next to a bad sample is missing, as in togglecf.features */
+  f->prev_acc[0] = acc[0]; f->prev_acc[1] = acc[1]; f->prev_acc[2] = acc[2];
+  if (f->n_filled < TCF_WINDOW) f->n_filled++;
+  f->pos = (f->pos + 1u) % TCF_WINDOW;
+}
+
+/* Feature row of the window ending at the last pushed sample (window_features): mean, std,
+   min, max of ring columns 0-14, mean of column 15, then the 13 *_last values. A column with a
+   non-finite value in the window gives NaN (missing) stats, as the numba and vectorised code. */
+static void tcf_window_features(const tcf_filter_t *f, float out[TCF_N_FEATURES]) {
+  int c, i, j;
+  float e = 0.0f;
+  for (c = 0; c < TCF_RING_COLS - 1; ++c) {
+    float s = 0.0f, ss = 0.0f, lo = f->ring[0][c], hi = f->ring[0][c], mean;
+    for (i = 0; i < TCF_WINDOW; ++i) {
+      float v = f->ring[i][c];
+      s += v;
+      if (v < lo) lo = v;
+      if (v > hi) hi = v;
+    }
+    if (!isfinite(s)) {  /* a non-finite value in the window: this channel's stats are missing */
+      out[4 * c] = out[4 * c + 1] = out[4 * c + 2] = out[4 * c + 3] = NAN;
+      continue;
+    }
+    mean = s / (float)TCF_WINDOW;
+    for (i = 0; i < TCF_WINDOW; ++i) {
+      float d = f->ring[i][c] - mean;
+      ss += d * d;
+    }
+    out[4 * c] = mean;
+    out[4 * c + 1] = sqrtf(ss / (float)TCF_WINDOW);
+    out[4 * c + 2] = lo;
+    out[4 * c + 3] = hi;
+  }
+  for (i = 0; i < TCF_WINDOW; ++i) e += f->ring[i][TCF_RING_COLS - 1];
+  out[4 * (TCF_RING_COLS - 1)] = isfinite(e) ? e / (float)TCF_WINDOW : NAN;
+  for (j = 0; j < TCF_N_LAST; ++j) out[4 * (TCF_RING_COLS - 1) + 1 + j] = f->last[j];
+}
+
+/* ------------------------------------------------------------------ filters/toggling.py */
+
+/* Probability-weighted gains (step 4, _gains); a non-finite probability row (no prediction
+   yet) gives the lowest gain of each sensor (the cautious choice). */
+static void tcf_gains(const float *pred, float *aa, float *am) {
+  float total = 0.0f;
+  int s;
+  *aa = 0.0f;
+  *am = 0.0f;
+  for (s = 0; s < TCF_N_CLASSES; ++s) {
+    float p = pred[s];
+    if (!(p >= 0.0f)) {
+      int t;
+      *aa = tcf_alpha_acc[0];
+      *am = tcf_alpha_mag[0];
+      for (t = 0; t < TCF_N_CLASSES; ++t) {
+        if (tcf_alpha_acc[t] < *aa) *aa = tcf_alpha_acc[t];
+        if (tcf_alpha_mag[t] < *am) *am = tcf_alpha_mag[t];
+      }
+      return;
+    }
+    *aa += p * tcf_alpha_acc[s];
+    *am += p * tcf_alpha_mag[s];
+    total += p;
+  }
+  if (total > 0.0f) {
+    *aa /= total;
+    *am /= total;
+  }
+}
+
+/* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->pred. */
+static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3],
+                            float dt) {
+  const float *pred = f->pred;
+  const float *eta_a = pred + TCF_N_CLASSES, *eta_m = pred + TCF_N_CLASSES + 3;
+  float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3];
+  int j, eta_ok = 1, acc_ok, mag_ok, g_ok;
+  for (j = 0; j < 6; ++j)
+    if (!isfinite(pred[TCF_N_CLASSES + j])) eta_ok = 0;
+  for (j = 0; j < 3; ++j) {  /* step 3: noise removal */
+    a_d[j] = eta_ok ? acc[j] - TCF_NOISE_WEIGHT_ACC * eta_a[j] : acc[j];
+    m_d[j] = eta_ok ? mag[j] - TCF_NOISE_WEIGHT_MAG * eta_m[j] : mag[j];
+  }
+  acc_ok = vector_ok(a_d);
+  mag_ok = TCF_USE_MAG && vector_ok(m_d);
+  tcf_gains(pred, &alpha_a, &alpha_m);  /* step 4: gain toggling */
+  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* trust the magnetometer less when a disturbance is predicted */
+    float e2 = eta_m[0] * eta_m[0] + eta_m[1] * eta_m[1] + eta_m[2] * eta_m[2];
+    alpha_m = alpha_m / (1.0f + e2 / (TCF_MAG_DISTURBANCE_SCALE * TCF_MAG_DISTURBANCE_SCALE));
+  }
+  p_static = pred[TCF_STATIC_INDEX] >= 0.0f ? pred[TCF_STATIC_INDEX] : 0.0f;
+  f->alpha_acc = 0.0f;
+  f->alpha_mag = 0.0f;
+  f->p_static = p_static;
+  if (!f->initialised) {  /* initialise orientation and vectors from the first valid sample */
+    static const float identity[4] = {1.0f, 0.0f, 0.0f, 0.0f};
+    float q0[4];
+    if (acc_ok && acc_mag_quaternion(identity, a_d, m_d, mag_ok, q0)) {
+      static const float north[3] = {0.0f, 1.0f, 0.0f};
+      f->q[0] = q0[0]; f->q[1] = q0[1]; f->q[2] = q0[2]; f->q[3] = q0[3];
+      f->initialised = 1u;
+      f->a_pred[0] = a_d[0]; f->a_pred[1] = a_d[1]; f->a_pred[2] = a_d[2];
+      if (mag_ok) {
+        f->m_pred[0] = m_d[0]; f->m_pred[1] = m_d[1]; f->m_pred[2] = m_d[2];
+      } else {
+        q_rotate(q0, 1, north, f->m_pred);  /* in 6D m_pred is unused */
+      }
+    }
+    return;
+  }
+  g_ok = fabsf(gyr[0]) < TCF_GYRO_FULL_SCALE && fabsf(gyr[1]) < TCF_GYRO_FULL_SCALE &&
+         fabsf(gyr[2]) < TCF_GYRO_FULL_SCALE;
+  if (g_ok && TCF_BIAS_GAIN > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
+    float rx = gyr[0] - f->bias[0], ry = gyr[1] - f->bias[1], rz = gyr[2] - f->bias[2];
+    if (rx * rx + ry * ry + rz * rz < TCF_BIAS_GATE * TCF_BIAS_GATE) {
+      float k = TCF_BIAS_GAIN * p_static;
+      f->bias[0] += k * rx; f->bias[1] += k * ry; f->bias[2] += k * rz;
+    }
+  }
+  w[0] = gyr[0] - f->bias[0]; w[1] = gyr[1] - f->bias[1]; w[2] = gyr[2] - f->bias[2];
+  if (gyro_increment(w, dt, dq) && g_ok) {  /* step 2: gyro propagation */
+    q_mul(f->q, dq, f->q);
+    q_normalize(f->q);
+    q_rotate(dq, 1, f->a_pred, f->a_pred);  /* earth-fixed directions rotate opposite to the body */
+    q_rotate(dq, 1, f->m_pred, f->m_pred);
+  }
+  if (acc_ok) {  /* step 5: vector CF step */
+    for (j = 0; j < 3; ++j) f->a_pred[j] = (1.0f - alpha_a) * f->a_pred[j] + alpha_a * a_d[j];
+    f->alpha_acc = alpha_a;
+  }
+  if (mag_ok) {
+    for (j = 0; j < 3; ++j) f->m_pred[j] = (1.0f - alpha_m) * f->m_pred[j] + alpha_m * m_d[j];
+    f->alpha_mag = alpha_m;
+  }
+  if (acc_mag_quaternion(f->q, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
+    const float c = 1.0f - TCF_GAMMA;  /* step 7: output blend (LERP on the short arc) */
+    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + TCF_GAMMA * q_am[j];
+    q_normalize(f->q);
+  }
+}
+
+/* ------------------------------------------------------------------ API */
+
+void tcf_filter_init(tcf_filter_t *f) {
+  int i, j;
+  f->q[0] = 1.0f; f->q[1] = 0.0f; f->q[2] = 0.0f; f->q[3] = 0.0f;
+  for (j = 0; j < 3; ++j) {
+    f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f; f->acc_lp[j] = 0.0f; f->prev_acc[j] = 0.0f;
+  }
+  f->initialised = 0u;
+  for (i = 0; i < TCF_WINDOW; ++i)
+    for (j = 0; j < TCF_RING_COLS; ++j) f->ring[i][j] = 0.0f;
+  f->ref_mag = 0.0f;
+  f->ref_dip = 0.0f;
+  f->ref_mag_lo = 0.0f;
+  f->ref_dip_lo = 0.0f;
+  for (j = 0; j < 3; ++j) f->acc_lp_lo[j] = 0.0f;
+  for (j = 0; j < TCF_N_LAST; ++j) f->last[j] = 0.0f;
+  f->n_filled = 0u;
+  f->pos = 0u;
+  f->hop_phase = 0u;
+  for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
+  f->alpha_acc = 0.0f;
+  f->alpha_mag = 0.0f;
+  f->p_static = 0.0f;
+}
+
+/* inloop_step: push the features; at a window end (every TCF_HOP samples once the window is
+   full) evaluate the trees into f->pred (held until the next one); then the toggling step. */
+void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
+  static const float zeros[3] = {0.0f, 0.0f, 0.0f};
+  if (mag == NULL) mag = zeros;
+  tcf_push_sample(f, gyr, acc, mag);
+  if (f->n_filled == TCF_WINDOW) {
+    if (f->hop_phase == 0u) {
+      float feat[TCF_N_FEATURES], margin[TCF_N_OUTPUTS];
+      int k;
+      tcf_window_features(f, feat);
+      tcf_predict(feat, margin);
+      tcf_softmax(margin);  /* class margins -> probabilities; eta_a, eta_m stay raw */
+      for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = margin[k];
+    }
+    f->hop_phase = (f->hop_phase + 1u) % TCF_HOP;
+  }
+  tcf_toggle_step(f, gyr, acc, mag, dt);
+}
+
+void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                            const float pred[TCF_N_PRED]) {
+  static const float zeros[3] = {0.0f, 0.0f, 0.0f};
+  int k;
+  for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = pred[k];
+  tcf_toggle_step(f, gyr, acc, mag == NULL ? zeros : mag, dt);
+}
+
+void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  tcf_filter_update_dt(f, gyr, acc, mag, TCF_DT);
+}
+
+void tcf_filter_quat(const tcf_filter_t *f, float q[4]) {
+  q[0] = f->q[0]; q[1] = f->q[1]; q[2] = f->q[2]; q[3] = f->q[3];
+}
+
+int tcf_filter_features(const tcf_filter_t *f, float feat[TCF_N_FEATURES]) {
+  if (f->n_filled < TCF_WINDOW) return 0;
+  tcf_window_features(f, feat);
+  return 1;
+}
+
+int tcf_filter_prediction(const tcf_filter_t *f, float pred[TCF_N_PRED]) {
+  int k;
+  for (k = 0; k < TCF_N_PRED; ++k) pred[k] = f->pred[k];
+  return isfinite(f->pred[0]) ? 1 : 0;
+}

@@ -1,0 +1,111 @@
+/* tcf_filter.h: the toggling-gain complementary filter of togglecf in C99 (float32).
+ *
+ * A port of togglecf.filters.toggling.inloop_step: per sample, the 16 feature channels are
+ * pushed into a ring buffer of the last TCF_WINDOW samples (togglecf.streaming_features); at
+ * every window end (once the window is full, then every TCF_HOP samples) the 74 window
+ * features go through the generated tree ensemble (tcf_forest.c: class margins -> softmax,
+ * plus the predicted acc/mag noise eta_a, eta_m), and the prediction is held until the next
+ * window end; then the toggling step (steps 1-7 of togglecf.filters.toggling) updates the
+ * orientation.
+ *
+ * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth,
+ * earth frame ENU (x east, y north, z up). Units: gyr rad/s, acc m/s^2, mag uT (only the
+ * magnetometer's direction enters the orientation, but the features use its norm in uT).
+ *
+ * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
+ * no globals written). tcf_filter_update needs ~(TCF_N_FEATURES + TCF_N_OUTPUTS) floats of
+ * stack at a window end. Reentrant: one tcf_filter_t per sensor.
+ *
+ * Rate: call tcf_filter_update exactly once per sample at TCF_FS Hz (the rate the models and
+ * gains were exported for, see tcf_config.h): window length, hop and the per-sample gains are
+ * fixed to it. tcf_filter_update_dt takes another dt for the gyro integration only (lost
+ * samples); the features still count samples.
+ *
+ * Bad samples (policy of togglecf.filters.base): non-finite or saturated gyro (|w| >= 34.9
+ * rad/s on an axis) -> no propagation; non-finite or zero-norm acc -> no correction; non-finite
+ * or zero-norm mag (9D) -> no heading correction. Non-finite samples enter the feature window
+ * as NaN (the trees treat them as missing) and do not update the EMA references.
+ *
+ * Do not compile with -ffast-math (the NaN tests would be removed).
+ */
+#ifndef TCF_FILTER_H
+#define TCF_FILTER_H
+
+#include <stdint.h>
+#include "tcf_config.h"
+#include "tcf_forest.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* per-sample channels kept in the ring (togglecf.features.WINDOW_CHANNELS + gyr_energy) */
+#define TCF_RING_COLS 16
+/* channels whose current value is a feature (togglecf.features.LAST_CHANNELS) */
+#define TCF_N_LAST 13
+/* class probabilities, then eta_a xyz [m/s^2], then eta_m xyz [uT] */
+#define TCF_N_PRED (TCF_N_CLASSES + 6)
+
+typedef struct tcf_filter {
+  /* orientation filter (toggle_step) */
+  float q[4];          /* orientation, sensor -> ENU, [w x y z] */
+  float bias[3];       /* gyro bias estimate [rad/s] */
+  float a_pred[3];     /* gyro-propagated, filtered specific force (sensor frame) [m/s^2] */
+  float m_pred[3];     /* gyro-propagated, filtered magnetic field (sensor frame) [uT] */
+  uint32_t initialised;  /* 0 until the first valid acc(/mag) sample */
+  /* feature window (streaming_features.push_sample) */
+  float ring[TCF_WINDOW][TCF_RING_COLS];
+  float ref_mag, ref_mag_lo;  /* EMA r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_filter.c) */
+  float ref_dip, ref_dip_lo;  /* EMA d_{k-1} of the dip angle [rad], hi + lo */
+  float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
+  float prev_acc[3];   /* last finite acc (for the jerk) */
+  float last[TCF_N_LAST];  /* the *_last features of the newest sample */
+  uint32_t n_filled;   /* samples in the ring (saturates at TCF_WINDOW) */
+  uint32_t pos;        /* ring row of the next sample */
+  uint32_t hop_phase;  /* samples since the last window end, modulo TCF_HOP */
+  /* held prediction (NaN before the first full window) */
+  float pred[TCF_N_PRED];
+  /* diagnostics of the last sample */
+  float alpha_acc;     /* accelerometer gain used (0: no acc correction) */
+  float alpha_mag;     /* magnetometer gain used (0: no heading correction) */
+  float p_static;      /* probability of the rest class (bias learning) */
+} tcf_filter_t;
+
+/* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time) */
+#define TCF_STATE_BYTES (4 * (52 + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+
+/* Reset: identity orientation, not initialised, empty window, no prediction. */
+void tcf_filter_init(tcf_filter_t *f);
+
+/* One sample at TCF_FS: gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no magnetometer, the
+   feature channels then see zeros, as the Python filter in 6D). With TCF_USE_MAG == 0 the
+   orientation ignores mag (the features still use it when given). */
+void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]);
+
+/* Same with the gyro integration step dt [s] (integrated only when 0 < dt <= TCF_MAX_DT). */
+void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt);
+
+/* The toggling step alone with a prediction made elsewhere (TogglingFilter.update with
+   prediction=...): pred[TCF_N_PRED] as tcf_filter_prediction returns it (NaN = none). The
+   feature window and the trees are not touched. For checks of the filter arithmetic, or when
+   the models run on another core. */
+void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                            const float pred[TCF_N_PRED]);
+
+/* Current orientation q[4] = [w x y z], sensor -> ENU (identity before initialisation). */
+void tcf_filter_quat(const tcf_filter_t *f, float q[4]);
+
+/* Held prediction pred[TCF_N_PRED]: class probabilities (order TCF_CLASS_NAMES), eta_a xyz,
+   eta_m xyz. Returns 0 before the first full window (pred is NaN then), 1 otherwise. */
+int tcf_filter_prediction(const tcf_filter_t *f, float pred[TCF_N_PRED]);
+
+/* Feature row feat[TCF_N_FEATURES] (names: togglecf.features.feature_schema) of the window
+   ending at the last sample, for logging/debugging. Returns 0 (feat untouched) until the
+   window is full. */
+int tcf_filter_features(const tcf_filter_t *f, float feat[TCF_N_FEATURES]);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* TCF_FILTER_H */

@@ -1,0 +1,274 @@
+/* tcf_harness.c: host program that runs the exported filter over a CSV file (C99).
+ *
+ *   tcf_harness [--no-mag] [--diag] [--time] [--features feat.csv] [--pred pred.csv] in.csv out.csv
+ *
+ * in.csv: a header line, then one row per sample at TCF_FS Hz with the columns
+ *   gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z   (rad/s, m/s^2, uT)
+ * or only the six gyr/acc columns (no magnetometer: mag = NULL). An empty field, "nan" or
+ * "inf" makes a bad sample (handled by the filter's bad-sample policy).
+ * out.csv: a header line, then w,x,y,z per sample (sensor -> ENU).
+ * Options:
+ *   --no-mag         pass mag = NULL even when the file has mag columns;
+ *   --diag           add the held prediction (p_<class>..., eta_acc_xyz, eta_mag_xyz) and the
+ *                    gains used (alpha_acc, alpha_mag) to out.csv;
+ *   --time           print the filter's time per sample (the update calls only, clock()) to stderr;
+ *   --features F     write the feature row of every window end (sample index, TCF_N_FEATURES
+ *                    values) to F (slows the loop: do not combine with --time);
+ *   --pred P         drive the toggling step with the predictions of P (header + one row of
+ *                    TCF_N_PRED values per sample) instead of the trees (tcf_filter_update_pred):
+ *                    checks the filter arithmetic on its own.
+ * Exit status: 0 ok, 1 bad input/output file, 2 bad usage.
+ *
+ * The filter itself needs no heap; this harness allocates the input and output arrays.
+ */
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include "tcf_filter.h"
+
+#define LINE_MAX_CHARS 8192
+#define N_DIAG (TCF_N_PRED + 2)
+
+static const char *class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
+
+static int fail(const char *path, long line, const char *msg, const char *detail) {
+  if (line > 0)
+    fprintf(stderr, "tcf_harness: %s:%ld: %s%s%s\n", path, line, msg, detail ? " " : "", detail ? detail : "");
+  else
+    fprintf(stderr, "tcf_harness: %s: %s%s%s\n", path, msg, detail ? " " : "", detail ? detail : "");
+  return 1;
+}
+
+static int count_fields(const char *s) {
+  int n = 1;
+  for (; *s; ++s)
+    if (*s == ',') ++n;
+  return n;
+}
+
+static void strip_eol(char *s) {
+  size_t n = strlen(s);
+  while (n > 0 && (s[n - 1] == '\n' || s[n - 1] == '\r')) s[--n] = '\0';
+}
+
+/* parse one field [b, e): empty -> NaN; returns 0 if it is not a number */
+static int parse_field(const char *b, const char *e, float *out) {
+  char buf[128], *end;
+  size_t n;
+  double v;
+  while (b < e && (*b == ' ' || *b == '\t')) ++b;
+  while (e > b && (e[-1] == ' ' || e[-1] == '\t')) --e;
+  n = (size_t)(e - b);
+  if (n == 0) {
+    *out = NAN;
+    return 1;
+  }
+  if (n >= sizeof buf) return 0;
+  memcpy(buf, b, n);
+  buf[n] = '\0';
+  v = strtod(buf, &end);
+  if (*end != '\0') return 0;
+  *out = (float)v;
+  return 1;
+}
+
+/* Read a CSV file with a header line whose column count is one of allowed[0..n_allowed-1]
+   into *rows (stride = the largest allowed count; missing columns are 0). Returns 0 on
+   success (*n_rows, *n_cols set) or 1 after printing an error naming the file and line. */
+static int read_csv(const char *path, const int *allowed, int n_allowed, const char *expected, float **rows,
+                    long *n_rows, int *n_cols) {
+  char line[LINE_MAX_CHARS];
+  long lineno = 1, n = 0, cap = 0;
+  int stride = 0, i, k, ok = 0;
+  float *x = NULL;
+  FILE *fin = fopen(path, "r");
+  if (!fin) return fail(path, 0, "cannot open:", strerror(errno));
+  if (!fgets(line, sizeof line, fin)) {
+    fclose(fin);
+    return fail(path, 0, "empty file: expected a header line such as", expected);
+  }
+  strip_eol(line);
+  *n_cols = count_fields(line);
+  for (i = 0; i < n_allowed; ++i) {
+    if (allowed[i] == *n_cols) ok = 1;
+    if (allowed[i] > stride) stride = allowed[i];
+  }
+  if (!ok) {
+    char msg[160];
+    sprintf(msg, "header has %d columns, expected %s; header:", *n_cols, expected);
+    fclose(fin);
+    return fail(path, 1, msg, line);
+  }
+  while (fgets(line, sizeof line, fin)) {
+    const char *b;
+    float *row;
+    ++lineno;
+    if (strchr(line, '\n') == NULL && !feof(fin)) {
+      fclose(fin);
+      free(x);
+      return fail(path, lineno, "line too long", NULL);
+    }
+    strip_eol(line);
+    if (line[0] == '\0') continue;  /* blank lines (e.g. at the end) */
+    if (count_fields(line) != *n_cols) {
+      char msg[64];
+      sprintf(msg, "expected %d fields, got %d:", *n_cols, count_fields(line));
+      fclose(fin);
+      free(x);
+      return fail(path, lineno, msg, line);
+    }
+    if (n == cap) {
+      float *grown;
+      cap = cap ? 2 * cap : 4096;
+      grown = (float *)realloc(x, sizeof(float) * (size_t)stride * (size_t)cap);
+      if (!grown) {
+        fclose(fin);
+        free(x);
+        return fail(path, lineno, "out of memory", NULL);
+      }
+      x = grown;
+    }
+    row = x + (long)stride * n;
+    b = line;
+    for (k = 0; k < *n_cols; ++k) {
+      const char *e = strchr(b, ',');
+      if (!e) e = b + strlen(b);
+      if (!parse_field(b, e, row + k)) {
+        char msg[64];
+        sprintf(msg, "column %d is not a number:", k + 1);
+        fclose(fin);
+        free(x);
+        return fail(path, lineno, msg, line);
+      }
+      b = *e ? e + 1 : e;
+    }
+    for (; k < stride; ++k) row[k] = 0.0f;
+    ++n;
+  }
+  fclose(fin);
+  *rows = x;
+  *n_rows = n;
+  return 0;
+}
+
+int main(int argc, char **argv) {
+  static const int imu_cols[2] = {6, 9}, pred_cols[1] = {TCF_N_PRED};
+  const char *in_path = NULL, *out_path = NULL, *feat_path = NULL, *pred_path = NULL;
+  int no_mag = 0, diag = 0, timing = 0, n_cols, n_pcols, i, k;
+  long n = 0, n_pred = 0, s;
+  float *x = NULL, *px = NULL, *qo = NULL, *dg = NULL;
+  FILE *fout, *ffeat = NULL;
+  tcf_filter_t f;
+  clock_t t0, t1;
+
+  for (i = 1; i < argc; ++i) {
+    if (strcmp(argv[i], "--no-mag") == 0) no_mag = 1;
+    else if (strcmp(argv[i], "--diag") == 0) diag = 1;
+    else if (strcmp(argv[i], "--time") == 0) timing = 1;
+    else if (strcmp(argv[i], "--features") == 0 && i + 1 < argc) feat_path = argv[++i];
+    else if (strcmp(argv[i], "--pred") == 0 && i + 1 < argc) pred_path = argv[++i];
+    else if (argv[i][0] == '-' && argv[i][1] != '\0') {
+      fprintf(stderr, "tcf_harness: unknown option %s (or its argument is missing)\n", argv[i]);
+      return 2;
+    } else if (!in_path) in_path = argv[i];
+    else if (!out_path) out_path = argv[i];
+    else {
+      fprintf(stderr, "tcf_harness: too many arguments\n");
+      return 2;
+    }
+  }
+  if (!in_path || !out_path) {
+    fprintf(stderr, "usage: tcf_harness [--no-mag] [--diag] [--time] [--features feat.csv] [--pred pred.csv] "
+                    "in.csv out.csv\n  in.csv: header + gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,mag_y,mag_z] per "
+                    "sample (rad/s, m/s^2, uT) at %g Hz\n", (double)TCF_FS);
+    return 2;
+  }
+
+  if (read_csv(in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
+               &x, &n, &n_cols))
+    return 1;
+  if (n_cols == 6) no_mag = 1;
+  if (pred_path) {
+    if (read_csv(pred_path, pred_cols, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", &px,
+                 &n_pred, &n_pcols)) {
+      free(x);
+      return 1;
+    }
+    if (n_pred != n) {
+      char msg[96];
+      sprintf(msg, "has %ld prediction rows for %ld samples", n_pred, n);
+      free(x); free(px);
+      return fail(pred_path, 0, msg, NULL);
+    }
+  }
+  qo = (float *)malloc(sizeof(float) * 4 * (size_t)(n ? n : 1));
+  dg = (float *)malloc(sizeof(float) * N_DIAG * (size_t)(n ? n : 1));
+  if (!qo || !dg) {
+    free(x); free(px); free(qo); free(dg);
+    return fail(in_path, 0, "out of memory", NULL);
+  }
+  if (feat_path) {
+    ffeat = fopen(feat_path, "w");
+    if (!ffeat) {
+      free(x); free(px); free(qo); free(dg);
+      return fail(feat_path, 0, "cannot write:", strerror(errno));
+    }
+  }
+
+  tcf_filter_init(&f);
+  t0 = clock();
+  for (s = 0; s < n; ++s) {
+    const float *r = x + 9 * s;
+    if (px)
+      tcf_filter_update_pred(&f, r, r + 3, no_mag ? NULL : r + 6, TCF_DT, px + (long)TCF_N_PRED * s);
+    else
+      tcf_filter_update(&f, r, r + 3, no_mag ? NULL : r + 6);
+    tcf_filter_quat(&f, qo + 4 * s);
+    if (ffeat && !px && f.n_filled == TCF_WINDOW && f.hop_phase == 1u % TCF_HOP) {  /* a window end */
+      float feat[TCF_N_FEATURES];
+      tcf_filter_features(&f, feat);
+      fprintf(ffeat, "%ld", s);
+      for (k = 0; k < TCF_N_FEATURES; ++k) fprintf(ffeat, ",%.9g", (double)feat[k]);
+      fputc('\n', ffeat);
+    }
+    if (diag) {
+      float *d = dg + N_DIAG * s;
+      tcf_filter_prediction(&f, d);
+      d[TCF_N_PRED] = f.alpha_acc;
+      d[TCF_N_PRED + 1] = f.alpha_mag;
+    }
+  }
+  t1 = clock();
+  if (timing)
+    fprintf(stderr, "tcf_harness: %ld samples, %.1f ns/sample (tcf_filter_update, clock()), state %u bytes\n", n,
+            n ? 1e9 * (double)(t1 - t0) / CLOCKS_PER_SEC / (double)n : 0.0, (unsigned)sizeof(tcf_filter_t));
+  if (ffeat && fclose(ffeat) != 0) {
+    free(x); free(px); free(qo); free(dg);
+    return fail(feat_path, 0, "write failed:", strerror(errno));
+  }
+
+  fout = fopen(out_path, "w");
+  if (!fout) {
+    free(x); free(px); free(qo); free(dg);
+    return fail(out_path, 0, "cannot write:", strerror(errno));
+  }
+  fputs("w,x,y,z", fout);
+  if (diag) {
+    for (k = 0; k < TCF_N_CLASSES; ++k) fprintf(fout, ",p_%s", class_names[k]);
+    fputs(",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,alpha_acc,alpha_mag", fout);
+  }
+  fputc('\n', fout);
+  for (s = 0; s < n; ++s) {
+    const float *q = qo + 4 * s;
+    fprintf(fout, "%.9g,%.9g,%.9g,%.9g", (double)q[0], (double)q[1], (double)q[2], (double)q[3]);
+    if (diag)
+      for (k = 0; k < N_DIAG; ++k) fprintf(fout, ",%.9g", (double)dg[N_DIAG * s + k]);
+    fputc('\n', fout);
+  }
+  free(x); free(px); free(qo); free(dg);
+  if (fclose(fout) != 0) return fail(out_path, 0, "write failed:", strerror(errno));
+  return 0;
+}

@@ -259,3 +259,18 @@ def test_linked_riscv_tl2cgen_models_together(synthetic_export):
     if size is None:
         pytest.skip("picolibc for riscv64-unknown-elf not installed")
     assert size["flash"] > 1000
+
+
+@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
+    """gcc's -fstack-usage figure for tcf_predict: the walker keeps one accumulator per output
+    (double by default) on the stack, so more outputs need more stack, and never less than that."""
+    boosters, _ = synthetic
+    forest = FlatForest.from_booster(boosters["classifier"])
+    h, c = export.forest_to_c(forest, "tcf_", n_classes=3)
+    (tmp_path / "tcf_forest.h").write_text(h)
+    (tmp_path / "tcf_forest.c").write_text(c)
+    stack = export.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "tcf_predict")
+    assert 8 * forest.n_outputs <= stack < 1024
+    with pytest.raises(RuntimeError, match="no stack-usage entry"):
+        export.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")

@@ -24,7 +24,9 @@
  * Bad samples (policy of togglecf.filters.base): non-finite or saturated gyro (|w| >= 34.9
  * rad/s on an axis) -> no propagation; non-finite or zero-norm acc -> no correction; non-finite
  * or zero-norm mag (9D) -> no heading correction. Non-finite samples enter the feature window
- * as NaN (the trees treat them as missing) and do not update the EMA references.
+ * as NaN (a window holding one gives missing stats of that channel; the trees follow their
+ * default branches) and do not update the EMA references, which start at the first finite
+ * sample.
  *
  * Do not compile with -ffast-math (the NaN tests would be removed).
  */
@@ -58,7 +60,7 @@ typedef struct tcf_filter {
   float ref_mag, ref_mag_lo;  /* EMA r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_filter.c) */
   float ref_dip, ref_dip_lo;  /* EMA d_{k-1} of the dip angle [rad], hi + lo */
   float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
-  float prev_acc[3];   /* last finite acc (for the jerk) */
+  float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */
   float last[TCF_N_LAST];  /* the *_last features of the newest sample */
   uint32_t n_filled;   /* samples in the ring (saturates at TCF_WINDOW) */
   uint32_t pos;        /* ring row of the next sample */

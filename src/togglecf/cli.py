@@ -15,7 +15,9 @@ from .data import DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
 from .evaluation import METRICS, group_means
 from .filters import FILTERS
 from .io import atomic_write_json, atomic_write_text
-from .runner import build_filter, evaluate_trials, grid_search, parse_grid
+from .backend import add_backend_args, backend_from_args, backend_settings, sweep_chunk_size
+from .runner import build_filter, grid_search, parse_grid
+from .sweep import ResultStore, journal_path, run_sweep
 
 
 def main(argv=None) -> int:
@@ -37,6 +39,13 @@ def _parser():
     p.add_argument("--version", action="version", version=f"togglecf {__version__}")
     sub = p.add_subparsers(dest="command")
 
+    def sweep_args(sp):
+        add_backend_args(sp, config=True)
+        sp.add_argument("--chunk-size", type=int, default=None, metavar="N",
+                        help="parameter sets per task (default: one task per trial locally, automatic on Dask)")
+        sp.add_argument("--no-resume", dest="resume", action="store_false",
+                        help="with --out: recompute everything instead of reusing DIR/sweep.jsonl")
+
     def data_args(sp):
         sp.add_argument("--data", metavar="DIR", help="BROAD directory (trials.json + .hdf5/.mat); default: "
                         "$TOGGLECF_DATA, else ../shared/data/broad next to the repo, else ./data/broad")
@@ -56,6 +65,7 @@ def _parser():
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
     sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
     sp.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
+    sweep_args(sp)
     sp.set_defaults(func=cmd_evaluate)
 
     sp = sub.add_parser("tune", help="grid search; report BROAD's TAGP (lowest mean total RMSE)")
@@ -64,8 +74,10 @@ def _parser():
     sp.add_argument("--grid", action="append", required=True, metavar="NAME=START:STOP:STEP",
                     help="parameter grid, repeatable; also NAME=a,b,c")
     sp.add_argument("--6d", dest="six_d", action="store_true")
-    sp.add_argument("--out", metavar="DIR")
-    sp.add_argument("--jobs", type=int, default=None)
+    sp.add_argument("--out", metavar="DIR", help="write the tables here; results stream to DIR/sweep.jsonl as "
+                    "they arrive and a rerun with the same --out computes only the missing points")
+    sp.add_argument("--jobs", type=int, default=None, help="local backend: worker processes (default: all cores)")
+    sweep_args(sp)
     sp.set_defaults(func=cmd_tune)
 
     from .export import add_export_parser
@@ -157,11 +169,18 @@ def cmd_evaluate(args):
         raise ValueError("--models is for --filter toggling")
     # validate the settings (and load the models) before starting workers
     settings = build_filter(args.filter, 285.0, params, use_mag=not args.six_d).settings
-    res = evaluate_trials(index, names, args.filter, [params], use_mag=not args.six_d, jobs=args.jobs)[0]
+    with _sweep_context(args) as (backend, store, chunk):
+        sweep = run_sweep(index, names, args.filter, [params], use_mag=not args.six_d, backend=backend, store=store,
+                          chunk_size=chunk, on_error="report", desc="evaluate")
+    res = sweep.results[0]
+    if not res:
+        raise ValueError(f"no trial could be evaluated: {sweep.failed}")
     per_trial, per_group = _tables(res, index.groups)
     _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group)
     if args.out:
-        _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings)))
+        _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings),
+                                                     failed_trials=sweep.failed))
+    return _report_failures(sweep.failed, [])
 
 
 def cmd_tune(args):
@@ -173,8 +192,11 @@ def cmd_tune(args):
     n = int(np.prod([len(v) for v in grid.values()]))
     print(f"grid of {n} points x {len(names)} trials", file=sys.stderr)
     t0 = time.time()
-    result = grid_search(index, names, args.filter, grid, use_mag=not args.six_d, jobs=args.jobs)
-    print(f"done in {time.time() - t0:.1f} s", file=sys.stderr)
+    with _sweep_context(args) as (backend, store, chunk):
+        result = grid_search(index, names, args.filter, grid, use_mag=not args.six_d, backend=backend, store=store,
+                             chunk_size=chunk, on_error="report")
+    print(f"done in {time.time() - t0:.1f} s ({result.sweep.computed} points computed, {result.sweep.reused} "
+          "reused from the journal)", file=sys.stderr)
     per_trial = pd.DataFrame.from_dict(result.per_trial, orient="index")
     per_trial.index.name = "trial"
     per_group = pd.DataFrame.from_dict(group_means(result.per_trial, index.groups), orient="index")
@@ -189,7 +211,50 @@ def cmd_tune(args):
     print(per_group.to_string(formatters={c: "{:.3f}".format for c in METRICS}))
     if args.out:
         _write(args.out, per_trial, per_group, _meta(args, index, names, grid=grid, tagp=result.params,
-                                                     mean_total_grid=result.mean_total))
+                                                     mean_total_grid=result.mean_total, failed_trials=result.failed,
+                                                     incomplete_trials=result.incomplete))
+    return _report_failures(result.failed, result.incomplete)
+
+
+class _sweep_context:
+    """Backend (from --backend/--scheduler/--config) and, with --out, the resumable journal."""
+
+    def __init__(self, args):
+        self.args = args
+
+    def __enter__(self):
+        args = self.args
+        settings = backend_settings(args)
+        self.backend = backend_from_args(args)
+        print(f"backend: {self.backend.describe()}", file=sys.stderr)
+        self.store = None
+        if args.out:
+            self.store = ResultStore(journal_path(args.out), fresh=not args.resume)
+            if self.store.done:
+                print(f"resuming: {len(self.store.done)} results in {self.store.path} (points already computed "
+                      "with the same filter, settings, trial files and version are not computed again)",
+                      file=sys.stderr)
+        chunk = args.chunk_size if args.chunk_size is not None else settings["chunk_size"]
+        return self.backend, self.store, sweep_chunk_size(self.backend, chunk)
+
+    def __exit__(self, *exc):
+        if self.store is not None:
+            self.store.close()
+        self.backend.close()
+
+
+def _report_failures(failed: dict, incomplete: list) -> int:
+    """Exit code 3 (after writing what was computed) when trials failed; they are listed on stderr."""
+    if not failed and not incomplete:
+        return 0
+    print(f"\nWARNING: {len(failed)} trial(s) failed and are missing from the tables:", file=sys.stderr)
+    for name, err in failed.items():
+        print(f"  {name}: {err}", file=sys.stderr)
+    for name in incomplete:
+        if name not in failed:
+            print(f"  {name}: not evaluated at every grid point", file=sys.stderr)
+    print("rerun with the same --out to compute only the missing points", file=sys.stderr)
+    return 3
 
 
 def cmd_download(args):

@@ -1,23 +1,20 @@
 """Run filters on BROAD trials and score them: one trial, a set of trials in parallel, a grid.
 
-Work is split by trial over a process pool (``jobs`` workers, default all cores); each
-worker loads its trial from disk itself, so arrays are not shipped between processes.
+Work is split by trial (or by trial and chunk of grid points) over a backend (``togglecf.backend``:
+a local process pool of ``jobs`` workers, default all cores, or a Dask cluster); each worker loads
+its trial from disk itself, so arrays are not shipped between processes (``togglecf.sweep``).
 """
 from __future__ import annotations
 
 import itertools
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-import multiprocessing as mp
 
 import numpy as np
 
-from .data import Trial, load_trial
+from .data import Trial
 from .evaluation import TagpResult, tagp, trial_errors
 from .filters import make_filter
-from .progress import progress
 
 __all__ = ["TrialResult", "run_filter", "evaluate_trials", "grid_points", "grid_search", "parse_grid"]
 
@@ -78,36 +75,22 @@ def _score(trial: Trial, filter_name, params, use_mag) -> TrialResult:
     return TrialResult(trial.name, trial.groups, errs, us, trial.n_samples, dict(params))
 
 
-def _evaluate_one(path, groups, filter_name, params_list, use_mag):
-    trial = load_trial(path, groups=groups)
-    return [_score(trial, filter_name, p, use_mag) for p in params_list]
-
-
-def _pool(jobs):
-    # fork: workers inherit the parent's compiled kernels (compiled in _warm_up before the pool)
-    return ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork"))
-
-
-def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=None, desc="evaluate"):
+def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=None, desc="evaluate",
+                    backend=None, store=None, chunk_size=None):
     """Evaluate every parameter dict in ``params_list`` on every named trial of ``index``.
 
     Returns a list (one per ``params_list`` entry) of dicts trial -> TrialResult, in the
     order of ``names``. ``jobs=1`` runs in this process (easier to debug and profile).
+    ``backend`` (``togglecf.backend``; default a local process pool on ``jobs`` cores), ``store``
+    (a resumable ``sweep.ResultStore``) and ``chunk_size`` go to ``sweep.run_sweep``; any failed
+    trial raises here (``run_sweep`` with ``on_error="report"`` reports failures instead).
     """
-    jobs = jobs or os.cpu_count() or 1
-    _warm_up(filter_name, 285.0, use_mag, params_list[0])
-    per_trial = {}
-    tasks = [(index.available[n], index.trial_groups(n)) for n in names]
-    if jobs == 1 or len(names) == 1:
-        for name, (path, groups) in progress(list(zip(names, tasks)), desc=desc, unit="trial"):
-            per_trial[name] = _evaluate_one(path, groups, filter_name, params_list, use_mag)
-    else:
-        with _pool(min(jobs, len(names))) as pool:
-            futs = {pool.submit(_evaluate_one, p, g, filter_name, params_list, use_mag): n
-                    for n, (p, g) in zip(names, tasks)}
-            for fut in progress(as_completed(futs), total=len(futs), desc=desc, unit="trial"):
-                per_trial[futs[fut]] = fut.result()
-    return [{n: per_trial[n][i] for n in names} for i in range(len(params_list))]
+    from .backend import LocalBackend
+    from .sweep import run_sweep
+
+    backend = backend or LocalBackend(jobs)
+    return run_sweep(index, names, filter_name, params_list, use_mag, backend=backend, store=store,
+                     chunk_size=chunk_size, on_error="raise", desc=desc).results
 
 
 def parse_grid(specs: list[str]) -> dict[str, list[float]]:
@@ -141,10 +124,26 @@ def grid_points(grid: dict) -> list[dict]:
     return [dict(zip(grid, k)) for k in itertools.product(*grid.values())]
 
 
-def grid_search(index, names, filter_name, grid, use_mag=True, jobs=None) -> TagpResult:
-    """Evaluate the full grid on the trials and return BROAD's TAGP (see ``evaluation.tagp``)."""
+def grid_search(index, names, filter_name, grid, use_mag=True, jobs=None, backend=None, store=None,
+                chunk_size=None, on_error="raise", on_result=None) -> TagpResult:
+    """Evaluate the full grid on the trials and return BROAD's TAGP (see ``evaluation.tagp``).
+
+    With ``on_error="report"`` a failed trial is left out of the TAGP (which needs the same trials
+    at every grid point) and listed in the result's ``failed`` attribute (trial -> error)."""
+    from .backend import LocalBackend
+    from .sweep import run_sweep
+
     params_list = grid_points(grid)
     keys = [tuple(p.values()) for p in params_list]
-    results = evaluate_trials(index, names, filter_name, params_list, use_mag, jobs, desc=f"tune {filter_name}")
-    scored = {k: {n: r.errors for n, r in res.items()} for k, res in zip(keys, results)}
-    return tagp(grid, scored)
+    sweep = run_sweep(index, names, filter_name, params_list, use_mag, backend=backend or LocalBackend(jobs),
+                      store=store, chunk_size=chunk_size, on_error=on_error, on_result=on_result,
+                      desc=f"tune {filter_name}")
+    complete = [n for n in names if all(n in res for res in sweep.results)]
+    if not complete:
+        raise ValueError(f"no trial was evaluated at every grid point; failures: {sweep.failed}")
+    scored = {k: {n: res[n].errors for n in complete} for k, res in zip(keys, sweep.results)}
+    result = tagp(grid, scored)
+    result.failed = dict(sweep.failed)
+    result.incomplete = [n for n in names if n not in complete]
+    result.sweep = sweep
+    return result

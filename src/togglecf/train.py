@@ -36,7 +36,9 @@ __all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make
            "run_training", "add_train_parser", "cmd_train", "format_cv_table"]
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "pipelines" / "configs" / "default.toml"
-_RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all", "max_features": 0}
+_RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all", "max_features": 0,
+                 # where CV folds and per-trial features run (togglecf.backend): local (this process) or dask
+                 "backend": "local", "scheduler": "", "retries": 2, "chunk_size": -1, "distributed_fit": False}
 _SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
 _GAIN_KEYS = ("learn", "modes")
 
@@ -58,6 +60,8 @@ def load_config(source=None) -> dict:
     if unknown:
         raise ValueError(f"config [run]: unknown key(s) {unknown}; known: {sorted(_RUN_DEFAULTS)}")
     cfg["run"] = {**_RUN_DEFAULTS, **cfg["run"]}
+    if cfg["run"]["backend"] not in ("local", "dask"):
+        raise ValueError(f"config [run]: backend must be 'local' or 'dask', got {cfg['run']['backend']!r}")
     LabelSettings.from_dict({**cfg["labels"], "seed": cfg["run"]["seed"]})  # validate early
     FeatureSettings.from_dict(cfg["features"])
     from .gains import GainSearch
@@ -106,7 +110,6 @@ class WindowData:
                           fs=self.fs, per_trial={n: self.per_trial[n] for n in names}, settings=self.settings)
 
 
-
 def _file_sha256(path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -115,32 +118,51 @@ def _file_sha256(path) -> str:
     return h.hexdigest()
 
 
+def _trial_part(index: DatasetIndex, name, label_settings, feature_settings, ransac):
+    """Targets, masks and features of one trial (a task: runs where the backend puts it, loading the trial
+    there from ``index``'s path)."""
+    trial = index.load(name)
+    t = make_targets(trial, label_settings)
+    X, ends = trial_features(trial, feature_settings)
+    valid = t.valid[ends]
+    inl = t.inlier[ends]
+    part = dict(X=X, state=t.state[ends], eta_acc=t.eta_acc[ends], eta_mag=t.eta_mag[ends],
+                train_mask=valid & inl if ransac else valid, eval_mask=valid & inl, end=ends)
+    counts = np.bincount(t.state[t.valid], minlength=len(t.state_names))
+    info = {"n_samples": trial.n_samples, "valid_fraction": float(t.valid.mean()),
+            "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
+            "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
+            "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
+            "sha256": _file_sha256(index.available[name])}
+    return part, info, trial.fs
+
+
 def build_dataset(index: DatasetIndex, names, label_settings: LabelSettings, feature_settings: FeatureSettings,
-                  ransac: bool = True) -> WindowData:
-    """Targets, RANSAC masks and features of every trial in ``names``."""
+                  ransac: bool = True, backend=None) -> WindowData:
+    """Targets, RANSAC masks and features of every trial in ``names``; one task per trial on ``backend``
+    (``togglecf.backend``; default: this process, in order)."""
+    from .backend import InlineBackend
+
+    backend = backend or InlineBackend()
+    tasks = [(g, (index, name, label_settings, feature_settings, ransac)) for g, name in enumerate(names)]
+    done = {}
+    for o in backend.run(_trial_part, tasks, desc="targets+features", unit="trial"):
+        if o.error is not None:
+            raise o.error
+        done[o.key] = o.value
     parts = []
     per_trial = {}
     fs0 = None
-    for g, name in enumerate(progress(names, desc="targets+features", unit="trial")):
-        trial = index.load(name)
+    for g, name in enumerate(names):
+        part, info, fs = done[g]
         if fs0 is None:
-            fs0 = trial.fs
-        elif abs(trial.fs - fs0) > 1e-6 * fs0:
-            raise ValueError(f"{name}: sampling rate {trial.fs} Hz differs from {fs0} Hz of the other trials")
-        t = make_targets(trial, label_settings)
-        X, ends = trial_features(trial, feature_settings)
-        valid = t.valid[ends]
-        inl = t.inlier[ends]
-        parts.append(dict(X=X, state=t.state[ends], eta_acc=t.eta_acc[ends], eta_mag=t.eta_mag[ends],
-                          train_mask=valid & inl if ransac else valid, eval_mask=valid & inl,
-                          group=np.full(len(ends), g), end=ends))
-        counts = np.bincount(t.state[t.valid], minlength=len(t.state_names))
-        per_trial[name] = {"n_samples": trial.n_samples, "valid_fraction": float(t.valid.mean()),
-                           "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
-                           "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
-                           "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
-                           "sha256": _file_sha256(index.available[name])}
-    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+            fs0 = fs
+        elif abs(fs - fs0) > 1e-6 * fs0:
+            raise ValueError(f"{name}: sampling rate {fs} Hz differs from {fs0} Hz of the other trials")
+        parts.append({**part, "group": np.full(len(part["end"]), g)})
+        per_trial[name] = info
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in ("X", "state", "eta_acc", "eta_mag", "train_mask",
+                                                              "eval_mask", "group", "end")}
     return WindowData(**cat, trials=list(names), window_samples=window_length(fs0, feature_settings.window_s),
                       fs=fs0, per_trial=per_trial, settings=_dataset_settings(label_settings, feature_settings, ransac))
 
@@ -149,7 +171,6 @@ def _dataset_settings(label_settings, feature_settings, ransac) -> dict:
     from dataclasses import asdict
 
     return {"labels": label_settings.to_dict(), "features": asdict(feature_settings), "ransac": bool(ransac)}
-
 
 
 def make_folds(group: np.ndarray, n_trials: int, n_splits: int):
@@ -235,27 +256,52 @@ def _evaluate(clf, regs, data: WindowData, train_rows, test_rows, schema, n_clas
     return res, preds
 
 
-def cross_validate(cfg, data: WindowData, schema, class_names):
+def _cv_fold(cfg, data: WindowData, i, train_g, test_g, schema, class_names):
+    """One CV fold (a task): fit on the training trials' rows, score the held-out ones, and the
+    out-of-fold predictions on every window of the held-out trials (for the gains)."""
+    train_rows = np.flatnonzero(np.isin(data.group, train_g) & data.train_mask)
+    test_rows = np.flatnonzero(np.isin(data.group, test_g) & data.eval_mask)
+    t0 = time.perf_counter()
+    clf, regs = _fit_all(cfg, data, train_rows, schema, class_names)
+    res, preds = _evaluate(clf, regs, data, train_rows, test_rows, schema, len(class_names))
+    oof_models = CompiledModels.from_bundle(ModelBundle(clf, regs, schema, {}))
+    oof = {}
+    for g in test_g:
+        rows_g = np.flatnonzero(data.group == g)
+        oof[data.trials[g]] = (data.end[rows_g], oof_models.predict_windows(data.X[rows_g]))
+    res.update(fold=i, test_trials=[data.trials[g] for g in test_g],
+               train_trials=[data.trials[g] for g in train_g], n_train=len(train_rows),
+               n_test=len(test_rows), seconds=time.perf_counter() - t0)
+    return res, preds, oof
+
+
+def cross_validate(cfg, data: WindowData, schema, class_names, backend=None):
     """Per-fold and pooled CV metrics; ``folds`` records each fold's train/test trial names.
-    Also returns the out-of-fold predictions: trial -> (window ends, prediction rows)."""
+    Also returns the out-of-fold predictions: trial -> (window ends, prediction rows).
+
+    Each fold is one task on ``backend`` (``togglecf.backend``; default: this process, fold after fold,
+    each fold with ``[run] nthread`` XGBoost threads); on Dask the window data is scattered once and
+    the folds train on the workers. Results are combined in fold order, so they do not depend on
+    where or in which order the folds ran."""
+    from .backend import InlineBackend
+
     n_classes = len(class_names)
     folds = make_folds(data.group, len(data.trials), cfg["run"]["cv_folds"])
+    backend = backend or InlineBackend()
+    handle = backend.scatter(data)
+    tasks = [(i, (cfg, handle, i, train_g, test_g, schema, class_names)) for i, (train_g, test_g) in enumerate(folds)]
+    fold_out = {}
+    for o in backend.run(_cv_fold, tasks, desc="cross-validation", unit="fold"):
+        if o.error is not None:
+            raise o.error
+        fold_out[o.key] = o.value
     out = {"folds": [], "per_trial": {}}
     oof = {}
     pooled = {"y": [], "proba": [], "const": [], "acc": [], "acc_t": [], "mag": [], "mag_t": []}
-    for i, (train_g, test_g) in enumerate(progress(folds, desc="cross-validation", unit="fold")):
-        train_rows = np.flatnonzero(np.isin(data.group, train_g) & data.train_mask)
+    for i, (train_g, test_g) in enumerate(folds):
+        res, preds, oof_i = fold_out[i]
+        oof.update(oof_i)
         test_rows = np.flatnonzero(np.isin(data.group, test_g) & data.eval_mask)
-        t0 = time.perf_counter()
-        clf, regs = _fit_all(cfg, data, train_rows, schema, class_names)
-        res, preds = _evaluate(clf, regs, data, train_rows, test_rows, schema, n_classes)
-        oof_models = CompiledModels.from_bundle(ModelBundle(clf, regs, schema, {}))
-        for g in test_g:  # out-of-fold predictions on every window of the held-out trials (for the gains)
-            rows_g = np.flatnonzero(data.group == g)
-            oof[data.trials[g]] = (data.end[rows_g], oof_models.predict_windows(data.X[rows_g]))
-        res.update(fold=i, test_trials=[data.trials[g] for g in test_g],
-                   train_trials=[data.trials[g] for g in train_g], n_train=len(train_rows),
-                   n_test=len(test_rows), seconds=time.perf_counter() - t0)
         out["folds"].append(res)
         for g in test_g:  # held-out numbers of every test trial on its own
             sel = data.group[test_rows] == g
@@ -341,12 +387,42 @@ def _versions() -> dict:
 
 
 def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = True, verbose: bool = True,
-                 dataset: WindowData | None = None) -> dict:
+                 dataset: WindowData | None = None, backend=None) -> dict:
     """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out`` and ``timing``.
 
     ``dataset``: a ``build_dataset`` result that holds (at least) the selected trials, built with
     this config's label and feature settings, reused instead of rebuilt (sweeps over model
-    settings build it once)."""
+    settings build it once).
+
+    ``backend``: a ``togglecf.backend.Backend`` for the per-trial features and the CV folds; default
+    from ``[run] backend/scheduler/retries``: ``local`` runs them in this process (as always),
+    ``dask`` on the cluster. With ``[run] distributed_fit = true`` on Dask, the final models are
+    trained with ``xgboost.dask`` on the training rows spread over the workers (``togglecf.dask_fit``)."""
+    with _train_backend(config, backend) as be:
+        return _run_training(config, data_dir, trials, out, cv, verbose, dataset, be)
+
+
+class _train_backend:
+    """The given backend (left open) or one from the config's ``[run]`` (closed afterwards)."""
+
+    def __init__(self, config, backend):
+        self.backend, self.own = backend, backend is None
+        if backend is None:
+            from .backend import InlineBackend, make_backend
+
+            run = load_config(config)["run"]
+            self.backend = (make_backend("dask", run["scheduler"], retries=int(run["retries"]))
+                            if run["backend"] == "dask" else InlineBackend())
+
+    def __enter__(self):
+        return self.backend
+
+    def __exit__(self, *exc):
+        if self.own:
+            self.backend.close()
+
+
+def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) -> dict:
     t_start = time.perf_counter()
     cfg = load_config(config)
     run = cfg["run"]
@@ -366,7 +442,8 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
         if verbose:
             print(msg, file=sys.stderr, flush=True)
 
-    log(f"togglecf train: {len(names)} trials from {index.root} -> {out_dir}")
+    log(f"togglecf train: {len(names)} trials from {index.root} -> {out_dir}"
+        + (f" on {backend.describe()}" if backend.name == "dask" else ""))
     t0 = time.perf_counter()
     if dataset is not None:
         if dataset.settings != _dataset_settings(label_settings, feature_settings, label_settings.ransac):
@@ -374,7 +451,8 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
                              "than this config's")
         data = dataset.subset(names)
     else:
-        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
+        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac,
+                             backend=backend)
     timing["dataset_s"] = time.perf_counter() - t0
     log(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
         f"in {timing['dataset_s']:.1f} s")
@@ -384,13 +462,18 @@ def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = T
     oof = None
     if cv:
         t0 = time.perf_counter()
-        result["cv"], oof = cross_validate(cfg, data, schema, class_names)
+        result["cv"], oof = cross_validate(cfg, data, schema, class_names, backend=backend)
         timing["cv_s"] = time.perf_counter() - t0
         if verbose:
             print(format_cv_table(result["cv"], class_names))
     t0 = time.perf_counter()
     rows = np.flatnonzero(data.train_mask)
-    clf, regs = _fit_all(cfg, data, rows, schema, class_names)
+    if run["distributed_fit"]:
+        from .dask_fit import fit_models_dask
+
+        clf, regs = fit_models_dask(backend, cfg, data, rows, schema, class_names)
+    else:
+        clf, regs = _fit_all(cfg, data, rows, schema, class_names)
     timing["final_fit_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     metadata = {
@@ -440,10 +523,22 @@ def add_train_parser(subparsers):
     sp.add_argument("--trials", metavar="LIST", help="comma-separated trial numbers or names (default: config)")
     sp.add_argument("--out", metavar="DIR", help="model directory (default: models/<run.name>)")
     sp.add_argument("--no-cv", dest="cv", action="store_false", help="skip cross-validation (final fit only)")
+    from .backend import add_backend_args
+
+    add_backend_args(sp)
+    sp.add_argument("--distributed-fit", action="store_true", default=None,
+                    help="with --backend dask: train the final models with xgboost.dask on the workers "
+                    "(also [run] distributed_fit)")
     sp.set_defaults(func=cmd_train)
     return sp
 
 
 def cmd_train(args):
-    run_training(args.config, data_dir=args.data, trials=args.trials, out=args.out, cv=args.cv)
+    cfg = load_config(args.config)
+    from .backend import backend_settings
+
+    cfg["run"].update({k: v for k, v in backend_settings(args, cfg["run"]).items() if k in cfg["run"]})
+    if getattr(args, "distributed_fit", None):
+        cfg["run"]["distributed_fit"] = True
+    run_training(cfg, data_dir=args.data, trials=args.trials, out=args.out, cv=args.cv)
     return 0

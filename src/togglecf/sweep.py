@@ -1,0 +1,181 @@
+"""Filter sweeps (``evaluate``, ``tune``) on any backend, streamed to a resumable journal.
+
+A sweep is every parameter dict of a list on every named trial. Tasks are (trial, chunk of
+parameter dicts); each loads its trial where it runs (from the data directory's path, which the
+workers must be able to read) and returns one ``TrialResult`` per parameter dict.
+
+Journal (``ResultStore``, JSON lines, one line per (trial, parameter dict), flushed after every
+finished task): each result is keyed by the filter, 6D/9D, the parameters, the trial, the trial
+file's identity (name, size, mtime) and the code version (and for the toggling filter the model
+files' identities). A second run with the same journal computes only the points that are not in
+it; a changed file, filter setting or version computes anew. Floats are written with ``repr``, so
+resumed results are bit-identical to computed ones.
+
+Failures: a trial that cannot be loaded (missing on a worker, corrupt file) or a task that fails
+after its retries becomes a failure record (trial -> error message); the other tasks go on. The
+points it leaves out are listed in ``SweepResult.missing``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import __version__
+from .backend import Backend, LocalBackend, load_trial_cached, trial_identity
+
+__all__ = ["ResultStore", "SweepResult", "run_sweep", "SWEEP_VERSION", "journal_path"]
+
+SWEEP_VERSION = f"togglecf-{__version__}/sweep-1"
+JOURNAL = "sweep.jsonl"
+
+
+def journal_path(out_dir) -> Path:
+    return Path(out_dir) / JOURNAL
+
+
+def _models_identity(models_dir) -> list:
+    p = Path(models_dir)
+    return sorted(trial_identity(f) for f in p.iterdir() if f.is_file()) if p.is_dir() else [str(p)]
+
+
+def point_key(filter_name, use_mag, params: dict, trial_id: str, extra=None) -> str:
+    blob = json.dumps([SWEEP_VERSION, filter_name, bool(use_mag), sorted(params.items()), trial_id, extra],
+                      default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+class ResultStore:
+    """Append-only JSONL journal of sweep results (see the module doc)."""
+
+    def __init__(self, path, fresh: bool = False):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if fresh:
+            self.path.unlink(missing_ok=True)
+        self.done = {}
+        if self.path.exists():
+            with open(self.path, encoding="utf-8") as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except ValueError:  # a line cut by an interruption
+                        continue
+                    if "key" in rec and "errors" in rec:
+                        self.done[rec["key"]] = rec
+        self._f = open(self.path, "a", encoding="utf-8")
+
+    def write(self, records):
+        for rec in records:
+            self._f.write(json.dumps(rec) + "\n")
+            if "key" in rec and "errors" in rec:
+                self.done[rec["key"]] = rec
+        self._f.flush()
+        os.fsync(self._f.fileno())
+
+    def close(self):
+        self._f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+@dataclass
+class SweepResult:
+    """``results[i]``: trial -> TrialResult for ``params_list[i]`` (trials in the given order, failed
+    trials absent); ``failed``: trial -> error message; ``missing``: (trial, params) not computed."""
+
+    results: list
+    failed: dict = field(default_factory=dict)
+    missing: list = field(default_factory=list)
+    computed: int = 0
+    reused: int = 0
+
+
+def _sweep_task(root, name, filter_name, params_list, use_mag):
+    from .runner import _score
+
+    try:
+        trial = load_trial_cached(root, name)
+    except Exception as exc:  # reported as a failed trial; the sweep goes on
+        return {"load_error": f"{type(exc).__name__}: {exc}"}
+    return [_score(trial, filter_name, p, use_mag) for p in params_list]
+
+
+def _chunks(n_points, n_trials, workers, chunk_size):
+    if n_points == 0:
+        return []
+    if chunk_size is None:
+        chunk_size = n_points  # one task per trial
+    elif chunk_size <= 0:  # auto: >= 4 tasks per worker, at most 64 points per task
+        per_trial = max(1, math.ceil(4 * workers / max(1, n_trials)))
+        chunk_size = min(64, max(1, math.ceil(n_points / per_trial)))
+    return [range(i, min(i + chunk_size, n_points)) for i in range(0, n_points, chunk_size)]
+
+
+def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Backend | None = None,
+              store: ResultStore | None = None, chunk_size: int | None = None, on_error="report",
+              on_result=None, desc="evaluate") -> SweepResult:
+    """Evaluate every dict of ``params_list`` on every trial of ``names`` (see the module doc).
+
+    ``chunk_size``: parameter dicts per task (``None``: all, one task per trial; ``0``: automatic).
+    ``on_error``: ``"raise"`` re-raises the first failure, ``"report"`` records it and goes on.
+    ``on_result(n_done)`` is called after each finished task (progress hooks, tests).
+    """
+    from .runner import TrialResult, _warm_up
+
+    backend = backend or LocalBackend()
+    root = str(Path(index.root).resolve())
+    extra = _models_identity(params_list[0]["models"]) if filter_name == "toggling" else None
+    ids = {n: trial_identity(index.available[n]) for n in names}
+    keys = {(n, i): point_key(filter_name, use_mag, p, ids[n], extra) for n in names for i, p in enumerate(params_list)}
+    got = {}
+    reused = 0
+    if store is not None:
+        for nk, k in keys.items():
+            if k in store.done:
+                rec = store.done[k]
+                got[nk] = TrialResult(rec["trial"], tuple(rec["groups"]), rec["errors"], rec["us_per_sample"],
+                                      rec["n_samples"], dict(params_list[nk[1]]))
+        reused = len(got)
+    tasks = []
+    for n in names:
+        todo = [i for i in range(len(params_list)) if (n, i) not in got]
+        for ch in _chunks(len(todo), len(names), backend.workers, chunk_size):
+            idx = [todo[j] for j in ch]
+            tasks.append(((n, idx), (root, n, filter_name, [params_list[i] for i in idx], use_mag)))
+    if tasks and isinstance(backend, LocalBackend):
+        _warm_up(filter_name, 285.0, use_mag, params_list[0])  # compiled before the fork
+    failed, computed = {}, 0
+    for done, out in enumerate(backend.run(_sweep_task, tasks, desc=desc, unit="task"), 1):
+        name, idx = out.key
+        if out.error is not None or isinstance(out.value, dict):
+            msg = out.value["load_error"] if out.error is None else f"{type(out.error).__name__}: {out.error}"
+            if on_error == "raise":
+                if out.error is not None:
+                    raise out.error
+                raise RuntimeError(f"{name}: {msg}")
+            failed.setdefault(name, msg)
+            if store is not None:
+                store.write([{"failed": name, "error": msg, "params": [params_list[i] for i in idx]}])
+        else:
+            recs = []
+            for i, r in zip(idx, out.value):
+                got[(name, i)] = r
+                recs.append({"key": keys[(name, i)], "trial": name, "filter": filter_name, "use_mag": use_mag,
+                             "params": params_list[i], "trial_file": ids[name], "groups": list(r.groups),
+                             "errors": r.errors, "us_per_sample": r.us_per_sample, "n_samples": r.n_samples})
+            computed += len(idx)
+            if store is not None:
+                store.write(recs)
+        if on_result is not None:
+            on_result(done)
+    results = [{n: got[(n, i)] for n in names if (n, i) in got} for i in range(len(params_list))]
+    missing = [(n, params_list[i]) for n in names for i in range(len(params_list)) if (n, i) not in got]
+    return SweepResult(results, failed, missing, computed, reused)

@@ -1,0 +1,124 @@
+"""Backends without a cluster: the resumable sweep journal, failed trials, clear backend errors."""
+import json
+import sys
+
+import pandas as pd
+import pytest
+
+from togglecf import backend as be
+from togglecf.cli import main
+from togglecf.data import DatasetIndex
+from togglecf.runner import evaluate_trials
+from togglecf.sweep import ResultStore, journal_path, run_sweep
+from test_data import make_broad_dir
+
+
+
+def _grid():
+    return [{"alpha": a} for a in (0.001, 0.002, 0.005, 0.01, 0.02)]
+
+
+class Stop(Exception):
+    pass
+
+
+def _stop_after(k):
+    def cb(n):
+        if n >= k:
+            raise Stop
+    return cb
+
+
+@pytest.fixture
+def synth(tmp_path):
+    return DatasetIndex.from_dir(make_broad_dir(tmp_path / "b", ["01_a", "02_b", "03_c"], ["01_a", "02_b", "03_c"]))
+
+
+def _errors(results):
+    return [{n: r.errors for n, r in res.items()} for res in results]
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_interrupted_sweep_resumes_with_only_the_missing_points(synth, tmp_path, jobs):
+    names, params = list(synth.available), _grid()
+    full = evaluate_trials(synth, names, "cf", params, jobs=1)
+    path = journal_path(tmp_path / "out")
+    with ResultStore(path) as store, pytest.raises(Stop):
+        run_sweep(synth, names, "cf", params, backend=be.LocalBackend(jobs), store=store, chunk_size=2,
+                  on_result=_stop_after(3))
+    with ResultStore(path) as store:
+        n_done = len(store.done)
+        assert 0 < n_done < len(names) * len(params)
+        second = run_sweep(synth, names, "cf", params, backend=be.LocalBackend(jobs), store=store, chunk_size=2)
+    assert second.reused == n_done and second.computed == len(names) * len(params) - n_done
+    assert _errors(second.results) == _errors(full)  # resumed values are bit-identical (repr floats)
+    with ResultStore(path) as store:  # a third run computes nothing
+        third = run_sweep(synth, names, "cf", params, backend=be.LocalBackend(jobs), store=store)
+    assert third.computed == 0 and _errors(third.results) == _errors(full)
+    with ResultStore(path) as store:  # another mode (6D) is another key: computed anew
+        assert run_sweep(synth, names, "cf", params[:1], use_mag=False, store=store,
+                         backend=be.LocalBackend(1)).computed == len(names)
+
+
+def test_changed_trial_file_is_recomputed(synth, tmp_path):
+    names, params = list(synth.available), _grid()[:2]
+    path = journal_path(tmp_path / "out")
+    with ResultStore(path) as store:
+        run_sweep(synth, names, "cf", params, backend=be.LocalBackend(1), store=store)
+    f = synth.available["02_b"]
+    f.touch()  # same content, new mtime: its points are computed again, the others reused
+    import os
+    os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 10**9))
+    with ResultStore(path) as store:
+        r = run_sweep(synth, names, "cf", params, backend=be.LocalBackend(1), store=store)
+    assert r.computed == len(params) and r.reused == 2 * len(params)
+
+
+def test_trial_that_fails_to_load_is_reported_and_the_sweep_goes_on(synth, tmp_path, capsys):
+    (synth.root / "03_c.hdf5").write_bytes(b"not an hdf5 file")
+    names, params = list(synth.available), _grid()
+    r = run_sweep(synth, names, "cf", params, backend=be.LocalBackend(2), on_error="report")
+    assert set(r.failed) == {"03_c"} and "03_c" in r.failed and r.failed["03_c"]
+    assert all(set(res) == {"01_a", "02_b"} for res in r.results)
+    assert sorted({n for n, _ in r.missing}) == ["03_c"] and len(r.missing) == len(params)
+    with pytest.raises(Exception):
+        evaluate_trials(synth, names, "cf", params, jobs=1)
+    out = tmp_path / "tune"
+    code = main(["tune", "--filter", "cf", "--grid", "alpha=0.001,0.01", "--data", str(synth.root), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 3 and "03_c" in err and "failed" in err
+    res = json.loads((out / "results.json").read_text())
+    assert list(res["failed_trials"]) == ["03_c"]
+    assert list(pd.read_csv(out / "per_trial.csv", index_col=0).index) == ["01_a", "02_b"]
+
+
+def test_cli_tune_resumes_from_its_out_dir(synth, tmp_path, capsys):
+    out = tmp_path / "tune"
+    args = ["tune", "--filter", "cf", "--grid", "alpha=0.001,0.01", "--data", str(synth.root), "--out", str(out)]
+    assert main(args) == 0
+    first = (out / "per_trial.csv").read_text()
+    assert main(args) == 0
+    assert "resuming: 6 results" in capsys.readouterr().err
+    assert (out / "per_trial.csv").read_text() == first
+    assert main(args + ["--no-resume"]) == 0 and "resuming" not in capsys.readouterr().err
+
+
+def test_backend_errors_are_clear(monkeypatch, synth, capsys):
+    with pytest.raises(be.BackendError, match="unknown backend"):
+        be.make_backend("spark")
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask were not installed
+    with pytest.raises(be.BackendError, match=r"pip install 'togglecf\[dask\]'"):
+        be.make_backend("dask", "tcp://127.0.0.1:8786")
+    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(synth.root),
+                 "--backend", "dask", "--scheduler", "tcp://127.0.0.1:8786"]) == 1
+    assert "togglecf[dask]" in capsys.readouterr().err
+
+
+def test_unreachable_scheduler_is_one_clear_line(monkeypatch, synth, capsys):
+    pytest.importorskip("distributed", reason="dask.distributed not installed (pip install 'togglecf[dask]')")
+    monkeypatch.setattr(be, "CONNECT_TIMEOUT_S", 1.0)
+    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(synth.root),
+                 "--backend", "dask", "--scheduler", "tcp://127.0.0.1:9"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot reach Dask scheduler at tcp://127.0.0.1:9" in err and "dask scheduler" in err
+    assert "Traceback" not in err

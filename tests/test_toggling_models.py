@@ -81,3 +81,24 @@ def test_trees_of_zero_weighted_outputs_are_skipped_without_changing_the_result(
     a = full.update_batch(t.gyr, t.acc, t.mag)
     b = ref.update_batch(t.gyr, t.acc, t.mag)
     assert np.array_equal(a.quat, b.quat)
+
+
+@pytest.mark.parametrize("use_mag,w_mag,sigma_m,mag_trees_kept", [
+    (True, 1.0, 0.0, True),    # step 3 subtracts w_m η̂_m
+    (True, 0.0, 10.0, True),   # step 4 still scales α_m with |η̂_m| (dropping them changed results: a bug once)
+    (True, 0.0, 0.0, False),   # η̂_m unused
+    (False, 1.0, 10.0, False),  # 6D: no magnetometer update at all
+])
+def test_magnetometer_trees_are_walked_exactly_when_the_filter_uses_them(bundle, segment, use_mag, w_mag, sigma_m,
+                                                                         mag_trees_kept):
+    t = segment.slice(0, 4000)
+    models = CompiledModels.from_bundle(bundle)
+    k = len(models.class_names)
+    kw = dict(GAINS, noise_weight_mag=w_mag, mag_disturbance_scale=sigma_m)
+    f = ModelTogglingFilter(t.fs, models=models, use_mag=use_mag, **kw)
+    groups = set(np.unique(f.forest.tree_group).tolist())
+    assert ({k + 3, k + 4, k + 5} <= groups) == mag_trees_kept
+    ref = ModelTogglingFilter(t.fs, models=models, use_mag=use_mag, **kw)
+    ref.forest = models.forest  # every tree walked: the result must not change
+    mag = t.mag if use_mag else None
+    assert np.array_equal(f.update_batch(t.gyr, t.acc, mag).quat, ref.update_batch(t.gyr, t.acc, mag).quat)

@@ -171,3 +171,26 @@ def test_final_fit_with_xgboost_dask(broad_index, cluster, tmp_path):
         rd = regression_metrics(y, bd.regressors[t].predict(X))["rmse"]
         print(f"{t} RMSE single-node {rl:.4f}, xgboost.dask {rd:.4f}")
         assert abs(rd - rl) < 0.03 * rl, (t, rl, rd)
+
+
+def test_pruning_sweep_on_dask_equals_inline(broad_index, cluster, tmp_path):
+    """`togglecf prune` with every (point, fold) a Dask task: the same rows and per-trial errors as
+    the in-process sweep (sizes too: the same trees are measured, only where differs; the
+    timings are the only columns allowed to differ)."""
+    from togglecf import prune
+    from togglecf.backend import InlineBackend
+
+    _, client = cluster
+    (tmp_path / "tiny.toml").write_text(TINY_TRAIN_TOML)
+    run_training(str(tmp_path / "tiny.toml"), data_dir=broad_index.root, trials="02,07,10,24",
+                 out=tmp_path / "models", cv=True, verbose=False)
+    points = [prune.PrunePoint(3, 2, 3, 2, 0, True), prune.PrunePoint(2, 2, 2, 2, 6)]
+    kw = dict(folds=2, inner_folds=2, data_dir=broad_index.root, riscv=False, log=lambda m: None)
+    here = prune.pruning_sweep(tmp_path / "models", tmp_path / "inline", points, backend=InlineBackend(), **kw)
+    there = prune.pruning_sweep(tmp_path / "models", tmp_path / "dask", points, backend=DaskBackend(client), **kw)
+    timing = {"us_per_prediction", "seconds"}
+    for a, b in zip(here, there):
+        assert {k: v for k, v in a.items() if k not in timing} == {k: v for k, v in b.items() if k not in timing}
+    per = [sorted((r["trial"], r["total"]) for r in json.loads(line)["per_trial"])
+           for d in ("inline", "dask") for line in (tmp_path / d / "sweep_rows.jsonl").read_text().splitlines()]
+    assert sorted(per[:2]) == sorted(per[2:])

@@ -139,7 +139,11 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
     """Coordinate descent from ``start`` (default: moderate gains). Returns ``(settings, history)``
     with ``history`` a list of ``(parameter, value, objective)`` after each accepted step.
     ``jobs > 1`` spreads the trials over that many forked processes."""
-    pool = _TrialPool(trials, predictions, jobs) if jobs > 1 and len(trials) > 1 else None
+    import multiprocessing as mp
+
+    # a daemonic process (a Dask worker, a pool worker) may not fork a pool: evaluate in-process there
+    parallel = jobs > 1 and len(trials) > 1 and not mp.current_process().daemon
+    pool = _TrialPool(trials, predictions, jobs) if parallel else None
     try:
         return _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool)
     finally:

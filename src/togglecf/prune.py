@@ -167,21 +167,54 @@ def _load_done(path: Path, identity: str) -> dict:
     return done
 
 
+def _sweep_fold(cfg, data, root, names, test, fold_dir, riscv: bool, tl2cgen: bool):
+    """One (point, fold) of the sweep (a backend task): train on the fold's training trials, filter
+    its test trials with the models in the loop, measure the trees the filter walks."""
+    from .backend import InlineBackend, load_trial_cached
+    from .evaluation import trial_errors
+    from .export import bundle_boosters
+    from .filters.toggling import load_toggling_filter
+    from .models import load_bundle
+    from .train import run_training
+
+    t0 = time.perf_counter()
+    train = [n for n in names if n not in test]
+    run_training(cfg, data_dir=root, trials=",".join(train), out=fold_dir, cv=True, verbose=False, dataset=data,
+                 backend=InlineBackend())
+    per_trial = []
+    for n in test:
+        t = load_trial_cached(root, n)
+        f = load_toggling_filter(fold_dir, t.fs)
+        o = f.update_batch(t.gyr, t.acc, t.mag)
+        per_trial.append({"trial": n, **trial_errors(o.quat, t.opt_quat, t.movement)})
+    k = len(f.models.class_names)
+    sizes = _array_measurements(f.forest, k, data.subset(test).X, riscv)
+    tl = {}
+    if tl2cgen:
+        used = _used_boosters(f.forest, k)
+        tl = _tl2cgen_sizes({n: b for n, b in bundle_boosters(load_bundle(fold_dir)).items() if n in used}, riscv)
+    return per_trial, sizes, _used_features(f.forest), tl, time.perf_counter() - t0
+
+
 def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: int = 3, data_dir=None,
-                  riscv: bool = True, log=_log) -> list:
+                  riscv: bool = True, log=_log, backend=None) -> list:
     """Run (or resume) the sweep of ``points`` (default ``default_points``) for the model
     directory ``model_dir``: its config, training trials and gain search, only the model sizes
     change. Writes ``out_dir/sweep_rows.jsonl`` (one line per finished point, with per-trial
-    errors) and returns the rows (dicts, see the module docstring), in ``points`` order."""
+    errors) and returns the rows (dicts, see the module docstring), in ``points`` order.
+
+    ``backend`` (``togglecf.backend``; default: this process, point after point): every (point,
+    fold) is one task; on Dask the window data is scattered once, the trials are loaded on the
+    workers, and ``out_dir`` must be on a file system the workers share (each task writes its
+    fold's model directory there). Results do not depend on where the tasks ran."""
+    from .backend import InlineBackend
     from .data import DatasetIndex, resolve_data_dir
-    from .evaluation import trial_errors
-    from .export import RISCV_GCC, bundle_boosters
+    from .export import RISCV_GCC
     from .features import FeatureSettings
-    from .filters.toggling import load_toggling_filter
     from .labels import LabelSettings
     from .models import load_bundle
     from .study import trial_folds
-    from .train import build_dataset, load_config, run_training
+    from .train import build_dataset, load_config
 
     import shutil
 
@@ -193,7 +226,7 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
     names = index.select(",".join(bundle.metadata["training_trials"]))
     points = list(points or default_points(cfg0))
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     rows_path = out / "sweep_rows.jsonl"
     test_sets = trial_folds(names, folds)
@@ -202,53 +235,49 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
     done = _load_done(rows_path, identity)
     todo = [p for p in points if p.key not in done]
+    backend = backend or InlineBackend()
     log(f"pruning sweep of {model_dir}: {len(points)} points x {folds} folds on {len(names)} trials "
-        f"({len(points) - len(todo)} already done in {rows_path})")
-    if todo:
-        t0 = time.perf_counter()
-        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac)
-        log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
-        loaded = {}
-    for i, p in enumerate(todo):
-        t0 = time.perf_counter()
-        cfg = p.apply(cfg0)
-        per_trial, array_rows, features_used = [], [], []
-        tl = {}
-        for k, test in enumerate(test_sets):
-            train = [n for n in names if n not in test]
-            fold_dir = out / "runs" / p.key / f"fold{k}"
-            run_training(cfg, data_dir=index.root, trials=",".join(train), out=fold_dir, cv=True, verbose=False,
-                         dataset=data)
-            for n in test:
-                t = loaded.setdefault(n, index.load(n))
-                f = load_toggling_filter(fold_dir, t.fs)
-                o = f.update_batch(t.gyr, t.acc, t.mag)
-                per_trial.append({"trial": n, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement)})
-            X_test = data.subset(test).X
-            array_rows.append(_array_measurements(f.forest, len(f.models.class_names), X_test, riscv))
-            features_used.append(_used_features(f.forest))
-            if k == 0:
-                used = _used_boosters(f.forest, len(f.models.class_names))
-                tl = _tl2cgen_sizes({n: b for n, b in bundle_boosters(load_bundle(fold_dir)).items() if n in used},
-                                    riscv)
+        f"({len(points) - len(todo)} already done in {rows_path}) on {backend.describe()}")
+    if not todo:
+        return [done[p.key]["row"] for p in points]
+    t0 = time.perf_counter()
+    data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac,
+                         backend=backend)
+    log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
+    handle = backend.scatter(data)
+    tasks = [((i, k), (p.apply(cfg0), handle, str(index.root), names, test, str(out / "runs" / p.key / f"fold{k}"),
+                       riscv, k == 0))
+             for i, p in enumerate(todo) for k, test in enumerate(test_sets)]
+    parts = {i: {} for i in range(len(todo))}
+    n_done = 0
+    for o in backend.run(_sweep_fold, tasks, desc="pruning sweep", unit="fold"):
+        if o.error is not None:
+            raise o.error
+        i, k = o.key
+        parts[i][k] = o.value
+        if len(parts[i]) < len(test_sets):
+            continue
+        p = todo[i]
+        per_trial = [{**r, "fold": k} for k in range(len(test_sets)) for r in parts[i][k][0]]
+        array_rows = [parts[i][k][1] for k in range(len(test_sets))]
         tot = np.array([r["total"] for r in per_trial])
-        worst = max(array_rows, key=lambda r: r["array_host_bytes"])
-        row = {"key": p.key, **asdict(p), "features_used": max(features_used),
+        row = {"key": p.key, **asdict(p), "features_used": max(parts[i][k][2] for k in range(len(test_sets))),
                "mean_total": float(tot.mean()), "mean_heading": float(np.mean([r["heading"] for r in per_trial])),
                "mean_inclination": float(np.mean([r["inclination"] for r in per_trial])),
                "max_total": float(tot.max()),
-               "array_host_bytes": worst["array_host_bytes"],
+               "array_host_bytes": max(r["array_host_bytes"] for r in array_rows),
                "array_riscv_bytes": max((r["array_riscv_bytes"] for r in array_rows if r["array_riscv_bytes"]),
                                         default=None),
                "ram_bytes": max((r["ram_bytes"] for r in array_rows if r["ram_bytes"]), default=None),
-               "us_per_prediction": float(np.median([r["us_per_prediction"] for r in array_rows])), **tl,
-               "seconds": time.perf_counter() - t0}
+               "us_per_prediction": float(np.median([r["us_per_prediction"] for r in array_rows])), **parts[i][0][3],
+               "seconds": float(sum(parts[i][k][4] for k in range(len(test_sets))))}  # compute time
         rec = {"identity": identity, "row": row, "per_trial": per_trial}
         with open(rows_path, "a") as fh:  # one complete line per point: an interruption loses at most one point
             fh.write(json.dumps(rec) + "\n")
             fh.flush()
         done[p.key] = rec
-        log(f"[{i + 1}/{len(todo)}] {p.key}: mean total {row['mean_total']:.3f}°, "
+        n_done += 1
+        log(f"[{n_done}/{len(todo)}] {p.key}: mean total {row['mean_total']:.3f}°, "
             f"rv32 array {_kib(row['array_riscv_bytes'])}, tl2cgen {_kib(row.get('tl2cgen_riscv_bytes'))} "
             f"({row['seconds']:.0f} s)")
     return [done[p.key]["row"] for p in points]
@@ -376,16 +405,26 @@ def add_sweep_arguments(sp):
     sp.add_argument("--folds", type=int, default=5, help="held-out folds by whole trial (default: 5, as the study)")
     sp.add_argument("--inner-folds", type=int, default=3, help="CV folds inside each training set, whose "
                     "out-of-fold predictions the gains are learned on (default: 3, as the study)")
+    from .backend import add_backend_args
+
+    add_backend_args(sp)  # dask: every (point, fold) a task; the sweep directory must be shared with the workers
 
 
 def sweep_from_args(args, sweep_dir, log=_log) -> list:
+    """The sweep of ``add_sweep_arguments``' options. ``--backend local`` (default) runs the
+    folds one after another here (each already uses the cores: XGBoost threads, the gain
+    search's process pool); ``--backend dask`` runs every (point, fold) on the cluster."""
+    from .backend import InlineBackend, backend_settings, make_backend
     from .models import load_bundle
     from .train import load_config
 
     cfg = load_config(load_bundle(args.models).metadata["config"])
     pts = default_points(cfg, _ints(args.trees), _ints(args.depths), _ints(args.features))
-    return pruning_sweep(args.models, sweep_dir, pts, folds=args.folds, inner_folds=args.inner_folds,
-                         data_dir=args.data, riscv=not args.no_riscv, log=log)
+    s = backend_settings(args, cfg["run"])
+    backend = make_backend("dask", s["scheduler"], retries=s["retries"]) if s["backend"] == "dask" else InlineBackend()
+    with backend:
+        return pruning_sweep(args.models, sweep_dir, pts, folds=args.folds, inner_folds=args.inner_folds,
+                             data_dir=args.data, riscv=not args.no_riscv, log=log, backend=backend)
 
 
 def add_prune_parser(subparsers):

@@ -154,7 +154,7 @@ def test_final_fit_with_xgboost_dask(broad_index, cluster, tmp_path):
     _wait_workers(client)
     local = run_training(_tiny_cfg(), data_dir=broad_index.root, trials=TRIALS, out=tmp_path / "l", cv=False,
                          verbose=False)
-    dist = run_training(_tiny_cfg(distributed_fit=True), data_dir=broad_index.root, trials=TRIALS,
+    run_training(_tiny_cfg(distributed_fit=True), data_dir=broad_index.root, trials=TRIALS,
                         out=tmp_path / "d", cv=False, verbose=False, backend=DaskBackend(client))
     from togglecf.models import load_bundle, regression_metrics
 

@@ -45,7 +45,7 @@ def test_gain_follows_predicted_state():
 
 def test_bias_learned_at_rest_and_used_in_motion():
     bias = np.array([0.004, -0.006, 0.008])  # 0.2-0.5 °/s, like BROAD's IMU
-    n_rest, _n_move = int(20 * FS), int(10 * FS)
+    n_rest = int(20 * FS)
     rest = static_trajectory([10, -5, 30], n_rest)
     move = axis_sweep_trajectory([0, 0, 1], 90, FS, 10.0, start=rest[-1])
     q_true = np.vstack([rest, move])

@@ -9,9 +9,9 @@
 * ``tcf_config.h``: generated: rate, window, hop, EMA constants, the learned gains of
   ``gains.json`` (9D or 6D), class names and the hashes of the model files it came from;
 * ``tcf_forest.h`` / ``tcf_forest.c``: the merged forest (``export.forest_to_c``, outputs
-  S class margins, η_a xyz, η_m xyz) without the trees the filter never uses: the outputs
-  ``ModelTogglingFilter`` drops (noise weight 0) and, in 6D, η_m (it only enters the
-  magnetometer update). Leaf sums in float (``TCF_ACC_T``, set in ``tcf_config.h``);
+  S class margins, η_a xyz, η_m xyz) without the trees the filter never uses (the outputs
+  ``ModelTogglingFilter`` drops: η_a at noise weight 0; η_m in 6D, or at noise weight 0 without
+  disturbance scaling). Leaf sums in float (``TCF_ACC_T``, set in ``tcf_config.h``);
 * ``tcf_harness.c`` + ``Makefile``: a host program ``tcf_harness in.csv out.csv`` (CSV of
   gyr, acc[, mag] in rad/s, m/s², µT -> w,x,y,z), used by the tests to compare with Python;
 * ``filter_report.json``: the returned report (files, state size, sizes).
@@ -64,10 +64,6 @@ def _need_gcc(what: str) -> str:
     if gcc is None:
         raise RuntimeError(f"gcc not found on PATH: {what} needs a host C compiler (apt-get install gcc)")
     return gcc
-
-
-def _sha256_file(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _c_string(s: str) -> str:
@@ -207,7 +203,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     from .features import hop_length, window_length
     from .filters.toggling import load_toggling_filter
     from .gains import GAINS_FILE
-    from .io import atomic_write_json, atomic_write_text
+    from .io import atomic_write_json, atomic_write_text, file_sha256
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     meta_path = model_dir / "metadata.json"
@@ -244,7 +240,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
         raise AssertionError("window/hop of the Python filter and the export disagree")
 
     model_hash = hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode()).hexdigest()
-    gains_hash = _sha256_file(gains_path)
+    gains_hash = file_sha256(gains_path)
     schema_hash = meta.get("feature_schema", {}).get("hash", "?")
     out_dir.mkdir(parents=True, exist_ok=True)
     files = []
@@ -300,6 +296,27 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     return exe
 
 
+def _write_imu_csv(path, gyr, acc, mag=None) -> int:
+    """The harness's input CSV (header, 6 or 9 columns, exact float64 digits); returns N."""
+    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
+    if mag is not None:
+        cols.append(np.asarray(mag, np.float64))
+    n = cols[0].shape[0]
+    for c in cols:
+        if c.shape != (n, 3):
+            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
+    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"][:3 * len(cols)]
+    np.savetxt(path, np.hstack(cols), fmt="%.17g", delimiter=",", header=",".join(names), comments="")
+    return n
+
+
+def _run_harness_cmd(exe, cmd):
+    res = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+    return res
+
+
 def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False, predictions=None):
     """Run the compiled harness on ``(N, 3)`` arrays (``mag=None``: a 6-column CSV, the filter
     gets ``mag = NULL``; ``no_mag``: pass NULL although mag is given). Returns the quaternions
@@ -310,17 +327,9 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
     (``tcf_filter_update_pred``; as ``TogglingFilter.update_batch(..., predictions=...)``)."""
     import pandas as pd
 
-    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
-    if mag is not None:
-        cols.append(np.asarray(mag, np.float64))
-    n = cols[0].shape[0]
-    for c in cols:
-        if c.shape != (n, 3):
-            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
-    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"][:3 * len(cols)]
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        np.savetxt(fin, np.hstack(cols), fmt="%.17g", delimiter=",", header=",".join(names), comments="")
+        n = _write_imu_csv(fin, gyr, acc, mag)
         extra = []
         if predictions is not None:
             P = np.asarray(predictions, np.float64)
@@ -332,9 +341,7 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
             extra = ["--pred", str(fpred)]
         cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
                str(fin), str(fout)]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+        res = _run_harness_cmd(exe, cmd)
         df = pd.read_csv(fout)
     quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
     if quat.shape != (n, 4):
@@ -350,15 +357,9 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
 def harness_features(exe, gyr, acc, mag=None):
     """The C filter's feature rows at its window ends: ``(ends (n,), X (n, 74))`` float64, to
     compare with ``features.compute_features`` (``tcf_harness --features``)."""
-    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
-    if mag is not None:
-        cols.append(np.asarray(mag, np.float64))
-    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"][:3 * len(cols)]
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout, ffeat = Path(tmp) / "in.csv", Path(tmp) / "out.csv", Path(tmp) / "feat.csv"
-        np.savetxt(fin, np.hstack(cols), fmt="%.17g", delimiter=",", header=",".join(names), comments="")
-        res = subprocess.run([str(exe), "--features", str(ffeat), str(fin), str(fout)], capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+        _write_imu_csv(fin, gyr, acc, mag)
+        _run_harness_cmd(exe, [str(exe), "--features", str(ffeat), str(fin), str(fout)])
         F = np.loadtxt(ffeat, delimiter=",", ndmin=2)
     return F[:, 0].astype(np.int64), F[:, 1:]

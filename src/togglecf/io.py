@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "to_jsonable", "check_keys"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "to_jsonable", "check_keys", "file_sha256"]
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
@@ -60,6 +60,17 @@ def to_jsonable(obj):
 
 def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False) + "\n")
+
+
+def file_sha256(path) -> str:
+    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def check_keys(cls, d: dict, what: str) -> dict:

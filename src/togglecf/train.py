@@ -12,7 +12,6 @@ Baselines: the majority class of the fold's training labels (classifier) and zer
 """
 from __future__ import annotations
 
-import hashlib
 import platform
 import sys
 import time
@@ -25,12 +24,11 @@ import numpy as np
 from . import __version__
 from .data import DatasetIndex, resolve_data_dir
 from .features import FeatureSettings, feature_schema, trial_features, window_length
-from .io import atomic_write_text
+from .io import atomic_write_text, file_sha256
 from .labels import LabelSettings, make_targets, state_names
 from .filters.toggling import CompiledModels, hold_predictions
 from .models import (ModelBundle, MotionClassifier, NoiseRegressor, classification_metrics, regression_metrics,
                      save_bundle)
-from .progress import progress
 
 __all__ = ["DEFAULT_CONFIG", "load_config", "WindowData", "build_dataset", "make_folds", "cross_validate",
            "run_training", "add_train_parser", "cmd_train", "format_cv_table"]
@@ -110,14 +108,6 @@ class WindowData:
                           fs=self.fs, per_trial={n: self.per_trial[n] for n in names}, settings=self.settings)
 
 
-def _file_sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _trial_part(index: DatasetIndex, name, label_settings, feature_settings, ransac):
     """Targets, masks and features of one trial (a task: runs where the backend puts it, loading the trial
     there from ``index``'s path)."""
@@ -133,7 +123,7 @@ def _trial_part(index: DatasetIndex, name, label_settings, feature_settings, ran
             "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
             "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
             "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
-            "sha256": _file_sha256(index.available[name])}
+            "sha256": file_sha256(index.available[name])}
     return part, info, trial.fs
 
 

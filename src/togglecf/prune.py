@@ -142,7 +142,12 @@ def _tl2cgen_sizes(boosters: dict, riscv: bool) -> dict:
 
 
 def _used_features(forest) -> int:
-    return int(np.unique(forest.feature[forest.feature >= 0]).size)
+    """Distinct features the forest's trees split on (only trees still walked: ``without_outputs``
+    keeps the dropped trees' nodes in the arrays)."""
+    from .export import _preorder
+
+    feat = forest.feature[_preorder(forest)[0]]
+    return int(np.unique(feat[feat >= 0]).size)
 
 
 # ------------------------------------------------------------------------------------- sweep
@@ -152,19 +157,6 @@ def _sweep_identity(cfg, names, folds, inner_folds, data_files) -> str:
                        "trials": names, "folds": folds, "inner": inner_folds, "files": data_files},
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def _load_done(path: Path, identity: str) -> dict:
-    done = {}
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:  # a line cut by an interruption
-                continue
-            if rec.get("identity") == identity:
-                done[rec["row"]["key"]] = rec
-    return done
 
 
 def _sweep_fold(cfg, data, root, names, test, fold_dir, riscv: bool, tl2cgen: bool):
@@ -196,6 +188,27 @@ def _sweep_fold(cfg, data, root, names, test, fold_dir, riscv: bool, tl2cgen: bo
     return per_trial, sizes, _used_features(f.forest), tl, time.perf_counter() - t0
 
 
+def _point_row(p: "PrunePoint", folds: list) -> tuple:
+    """A point's sweep row and per-trial errors from its folds' ``_sweep_fold`` results (in fold
+    order): errors over all test trials; sizes the largest over the folds' models; TL2cgen sizes
+    from fold 0; time per prediction the median; ``seconds`` the summed compute time."""
+    per_trial = [{**r, "fold": k} for k, f in enumerate(folds) for r in f[0]]
+    sizes = [f[1] for f in folds]
+    tot = np.array([r["total"] for r in per_trial])
+
+    def largest(name):
+        vals = [s[name] for s in sizes if s[name] is not None]
+        return max(vals) if vals else None
+
+    row = {"key": p.key, **asdict(p), "features_used": max(f[2] for f in folds),
+           "mean_total": float(tot.mean()), "mean_heading": float(np.mean([r["heading"] for r in per_trial])),
+           "mean_inclination": float(np.mean([r["inclination"] for r in per_trial])), "max_total": float(tot.max()),
+           "array_host_bytes": largest("array_host_bytes"), "array_riscv_bytes": largest("array_riscv_bytes"),
+           "ram_bytes": largest("ram_bytes"), "us_per_prediction": float(np.median([s["us_per_prediction"] for s in sizes])),
+           **folds[0][3], "seconds": float(sum(f[4] for f in folds))}
+    return row, per_trial
+
+
 def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: int = 3, data_dir=None,
                   riscv: bool = True, log=_log, backend=None) -> list:
     """Run (or resume) the sweep of ``points`` (default ``default_points``) for the model
@@ -203,7 +216,8 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     change. Writes ``out_dir/sweep_rows.jsonl`` (one line per finished point, with per-trial
     errors) and returns the rows (dicts, see the module docstring), in ``points`` order.
 
-    ``backend`` (``togglecf.backend``; default: this process, point after point): every (point,
+    Points already in the journal for the same config, trials, folds and data files are not
+    computed again. ``backend`` (``togglecf.backend``; default: this process, point after point): every (point,
     fold) is one task; on Dask the window data is scattered once, the trials are loaded on the
     workers, and ``out_dir`` must be on a file system the workers share (each task writes its
     fold's model directory there). Results do not depend on where the tasks ran."""
@@ -214,6 +228,7 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     from .labels import LabelSettings
     from .models import load_bundle
     from .study import trial_folds
+    from .sweep import ResultStore
     from .train import build_dataset, load_config
 
     import shutil
@@ -230,57 +245,41 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     out.mkdir(parents=True, exist_ok=True)
     rows_path = out / "sweep_rows.jsonl"
     test_sets = trial_folds(names, folds)
-    label_settings = LabelSettings.from_dict({**cfg0["labels"], "seed": cfg0["run"]["seed"]})
-    feature_settings = FeatureSettings.from_dict(cfg0["features"])
-    identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
-    done = _load_done(rows_path, identity)
-    todo = [p for p in points if p.key not in done]
     backend = backend or InlineBackend()
-    log(f"pruning sweep of {model_dir}: {len(points)} points x {folds} folds on {len(names)} trials "
-        f"({len(points) - len(todo)} already done in {rows_path}) on {backend.describe()}")
-    if not todo:
-        return [done[p.key]["row"] for p in points]
-    t0 = time.perf_counter()
-    data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac,
-                         backend=backend)
-    log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
-    handle = backend.scatter(data)
-    tasks = [((i, k), (p.apply(cfg0), handle, str(index.root), names, test, str(out / "runs" / p.key / f"fold{k}"),
-                       riscv, k == 0))
-             for i, p in enumerate(todo) for k, test in enumerate(test_sets)]
-    parts = {i: {} for i in range(len(todo))}
-    n_done = 0
-    for o in backend.run(_sweep_fold, tasks, desc="pruning sweep", unit="fold"):
-        if o.error is not None:
-            raise o.error
-        i, k = o.key
-        parts[i][k] = o.value
-        if len(parts[i]) < len(test_sets):
-            continue
-        p = todo[i]
-        per_trial = [{**r, "fold": k} for k in range(len(test_sets)) for r in parts[i][k][0]]
-        array_rows = [parts[i][k][1] for k in range(len(test_sets))]
-        tot = np.array([r["total"] for r in per_trial])
-        row = {"key": p.key, **asdict(p), "features_used": max(parts[i][k][2] for k in range(len(test_sets))),
-               "mean_total": float(tot.mean()), "mean_heading": float(np.mean([r["heading"] for r in per_trial])),
-               "mean_inclination": float(np.mean([r["inclination"] for r in per_trial])),
-               "max_total": float(tot.max()),
-               "array_host_bytes": max(r["array_host_bytes"] for r in array_rows),
-               "array_riscv_bytes": max((r["array_riscv_bytes"] for r in array_rows if r["array_riscv_bytes"]),
-                                        default=None),
-               "ram_bytes": max((r["ram_bytes"] for r in array_rows if r["ram_bytes"]), default=None),
-               "us_per_prediction": float(np.median([r["us_per_prediction"] for r in array_rows])), **parts[i][0][3],
-               "seconds": float(sum(parts[i][k][4] for k in range(len(test_sets))))}  # compute time
-        rec = {"identity": identity, "row": row, "per_trial": per_trial}
-        with open(rows_path, "a") as fh:  # one complete line per point: an interruption loses at most one point
-            fh.write(json.dumps(rec) + "\n")
-            fh.flush()
-        done[p.key] = rec
-        n_done += 1
-        log(f"[{n_done}/{len(todo)}] {p.key}: mean total {row['mean_total']:.3f}°, "
-            f"rv32 array {_kib(row['array_riscv_bytes'])}, tl2cgen {_kib(row.get('tl2cgen_riscv_bytes'))} "
-            f"({row['seconds']:.0f} s)")
-    return [done[p.key]["row"] for p in points]
+    identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
+    key = lambda p: f"{identity}/{p.key}"  # noqa: E731  (a point of this very sweep)
+    with ResultStore(rows_path, required=("row", "per_trial")) as store:
+        todo = [p for p in points if key(p) not in store.done]
+        log(f"pruning sweep of {model_dir}: {len(points)} points x {len(test_sets)} folds on {len(names)} trials "
+            f"({len(points) - len(todo)} already done in {store.path}) on {backend.describe()}")
+        if not todo:
+            return [store.done[key(p)]["row"] for p in points]
+        t0 = time.perf_counter()
+        label_settings = LabelSettings.from_dict({**cfg0["labels"], "seed": cfg0["run"]["seed"]})
+        data = build_dataset(index, names, label_settings, FeatureSettings.from_dict(cfg0["features"]),
+                             ransac=label_settings.ransac, backend=backend)
+        log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
+        handle = backend.scatter(data)
+        tasks = [((i, k), (p.apply(cfg0), handle, str(index.root), names, test, str(out / "runs" / p.key / f"fold{k}"),
+                           riscv, k == 0))
+                 for i, p in enumerate(todo) for k, test in enumerate(test_sets)]
+        parts = {i: {} for i in range(len(todo))}
+        n_done = 0
+        for o in backend.run(_sweep_fold, tasks, desc="pruning sweep", unit="fold"):
+            if o.error is not None:
+                raise o.error
+            i, k = o.key
+            parts[i][k] = o.value
+            if len(parts[i]) < len(test_sets):
+                continue
+            p = todo[i]
+            row, per_trial = _point_row(p, [parts[i][k] for k in range(len(test_sets))])
+            store.write([{"key": key(p), "row": row, "per_trial": per_trial}])  # one line per point, fsynced
+            n_done += 1
+            log(f"[{n_done}/{len(todo)}] {p.key}: mean total {row['mean_total']:.3f}°, "
+                f"rv32 array {_kib(row['array_riscv_bytes'])}, tl2cgen {_kib(row.get('tl2cgen_riscv_bytes'))} "
+                f"({row['seconds']:.0f} s)")
+        return [store.done[key(p)]["row"] for p in points]
 
 
 def _kib(v) -> str:

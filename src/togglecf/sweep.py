@@ -49,10 +49,13 @@ def point_key(filter_name, use_mag, params: dict, trial_id: str, extra=None) -> 
 
 
 class ResultStore:
-    """Append-only JSONL journal of sweep results (see the module doc)."""
+    """Append-only JSONL journal of sweep results (see the module doc). A record counts as done
+    when it has a ``key`` and every field of ``required`` (a line cut by an interruption is skipped);
+    ``done`` maps key -> record. The pruning sweep keeps its points in one too."""
 
-    def __init__(self, path, fresh: bool = False):
+    def __init__(self, path, fresh: bool = False, required=("errors",)):
         self.path = Path(path)
+        self.required = tuple(required)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if fresh:
             self.path.unlink(missing_ok=True)
@@ -64,14 +67,17 @@ class ResultStore:
                         rec = json.loads(line)
                     except ValueError:  # a line cut by an interruption
                         continue
-                    if "key" in rec and "errors" in rec:
+                    if self._complete(rec):
                         self.done[rec["key"]] = rec
         self._f = open(self.path, "a", encoding="utf-8")
+
+    def _complete(self, rec) -> bool:
+        return isinstance(rec, dict) and "key" in rec and all(k in rec for k in self.required)
 
     def write(self, records):
         for rec in records:
             self._f.write(json.dumps(rec) + "\n")
-            if "key" in rec and "errors" in rec:
+            if self._complete(rec):
                 self.done[rec["key"]] = rec
         self._f.flush()
         os.fsync(self._f.fileno())

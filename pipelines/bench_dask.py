@@ -17,11 +17,11 @@ import os
 import sys
 import time
 
-from togglecf.backend import DaskBackend, LocalBackend
-from togglecf.data import DatasetIndex, resolve_data_dir
-from togglecf.io import atomic_write_json
-from togglecf.runner import grid_points, parse_grid
-from togglecf.sweep import run_sweep
+from togglecf.core.io import atomic_write_json
+from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.parallel.backend import DaskBackend, LocalBackend
+from togglecf.run.scoring import grid_points, parse_grid
+from togglecf.run.sweep import run_sweep
 
 
 def _sweep(index, names, params, backend, chunk_size):

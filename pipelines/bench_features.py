@@ -13,7 +13,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from togglecf.features import FeatureSettings, compute_features  # noqa: E402
+from togglecf.features.windows import FeatureSettings, compute_features  # noqa: E402
 
 
 def main():
@@ -29,7 +29,7 @@ def main():
     gyr = acc = mag = None
     if not args.synthetic:
         try:
-            from togglecf.data import DatasetIndex, resolve_data_dir
+            from togglecf.data.broad import DatasetIndex, resolve_data_dir
 
             index = DatasetIndex.from_dir(resolve_data_dir())
             parts = [index.load(n) for n in index.select()[:5]]

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from togglecf.data import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import DatasetIndex, resolve_data_dir
 from togglecf.filters import FILTERS
 
 

@@ -11,9 +11,10 @@ import time
 
 import numpy as np
 
-from togglecf.data import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import DatasetIndex, resolve_data_dir
 from togglecf.filters import ComplementaryFilter
-from togglecf.filters.toggling import TogglingFilter, load_toggling_filter
+from togglecf.filters.toggling import TogglingFilter
+from togglecf.toggling import load_toggling_filter
 
 
 def best_time(run, repeats):

@@ -11,7 +11,7 @@ export_report.json. Train models/default first (`togglecf train`). Any option of
 """
 import sys
 
-from togglecf.cli import main
+from togglecf.cli.main import main
 
 DEFAULTS = {"--models": "models/default", "--out": "build/embedded/default", "--max-bytes": "32768",
             "--format": "both"}

@@ -8,9 +8,10 @@ write reports/study/ (summary.md, tables, plots).
 import sys
 from pathlib import Path
 
-from togglecf.data import DataNotFoundError, resolve_data_dir
-from togglecf.download import download_broad
-from togglecf.study import load_study_config, run_study
+from togglecf.core.log import setup_logging
+from togglecf.data.broad import DataNotFoundError, resolve_data_dir
+from togglecf.data.download import download_broad
+from togglecf.run.study import load_study_config, run_study
 
 DEFAULT_DOWNLOAD_DIR = Path("data/broad")
 
@@ -24,4 +25,5 @@ def data_dir() -> Path:
 
 
 if __name__ == "__main__":
+    setup_logging()
     run_study(load_study_config(), data_dir=data_dir(), out_dir="reports/study")

@@ -4,13 +4,14 @@
                                 [--trials 01,02,...] [--folds K]
 
 Writes reports/study/{summary.md, per_trial.csv, per_trial_total.csv, per_group.csv, results.json,
-plots/*.png, folds/fold<k>/models/} (see togglecf.study and togglecf.report).
+plots/*.png, folds/fold<k>/models/} (see togglecf.run.study and togglecf.report.study_report).
 """
 import argparse
 import sys
 from dataclasses import replace
 
-from togglecf.study import DEFAULT_STUDY_CONFIG, load_study_config, run_study
+from togglecf.core.log import setup_logging
+from togglecf.run.study import DEFAULT_STUDY_CONFIG, load_study_config, run_study
 
 
 def main(argv=None):
@@ -29,4 +30,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    setup_logging()
     sys.exit(main())

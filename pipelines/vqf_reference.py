@@ -4,7 +4,7 @@
 
 Runs ``vqf.VQF(Ts).updateBatch(gyr, acc, mag)`` (default parameters, 9D output ``quat9D``, ENU)
 on every trial and prints the mean total/heading/inclination RMSE [deg] with the project's
-own metrics (``togglecf.evaluation.trial_errors``), plus the 6D inclination.
+own metrics (``togglecf.metrics.broad.trial_errors``), plus the 6D inclination.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import argparse
 import numpy as np
 import vqf
 
-from togglecf.data import DatasetIndex, resolve_data_dir
-from togglecf.evaluation import trial_errors
+from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.metrics.broad import trial_errors
 
 
 def main(argv=None):

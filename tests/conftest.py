@@ -1,6 +1,11 @@
 """Shared fixtures. Real-data tests are marked ``broad``: skipped with the reason when BROAD is
-absent, except when ``TOGGLECF_REQUIRE_DATA=1`` (set by .ci/run), where absence is an error."""
+absent, except when ``TOGGLECF_REQUIRE_DATA=1`` (set by .ci/run), where absence is an error.
+
+``mini_index`` is always there: 14-s cuts of three real BROAD trials shipped in
+``tests/data/broad_mini`` (CC BY 4.0, see ``tests/data/README.md``), for the tests of what the code
+does with real recordings that make no claim about the full dataset (models, export, C filter)."""
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,9 +16,10 @@ settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
-from togglecf.data import DataNotFoundError, DatasetIndex, resolve_data_dir
+from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
 
 REQUIRE_DATA = os.environ.get("TOGGLECF_REQUIRE_DATA") == "1"
+MINI_DIR = Path(__file__).resolve().parent / "data" / "broad_mini"
 
 
 @pytest.fixture(scope="session")
@@ -33,18 +39,37 @@ def broad_trial(broad_index):
 
 
 @pytest.fixture(scope="session")
-def tiny_model_dir(broad_index, tmp_path_factory):
-    """A model directory trained in seconds on 3 real trials (02, 07, 24; no CV, no gains):
-    for tests of what is done *with* trained models (compiled inference, export)."""
-    from togglecf.train import load_config, run_training
+def mini_index():
+    """The shipped mini BROAD directory: 02, 07 and 24 (4000 samples = 14 s each: ~4 s rest,
+    then 10 s of movement; all four motion states occur). Never skipped."""
+    return DatasetIndex.from_dir(MINI_DIR)
+
+
+@pytest.fixture(scope="session")
+def mini_trial(mini_index):
+    """One short real trial: 24_disturbed_tapping_A (rest, then rotation, linear acceleration and
+    taps: every motion state), 4000 samples."""
+    return mini_index.load("24_disturbed_tapping_A")
+
+
+def train_tiny_models(data_dir, trials, out):
+    """Train the tiny models (15 + 10 trees of depth 4; no CV, no gains) on ``trials`` into ``out``."""
+    from togglecf.run.config import load_config
+    from togglecf.run.train import run_training
 
     cfg = load_config()
     cfg["classifier"].update(n_estimators=15, max_depth=4)
     cfg["regressor"].update(n_estimators=10, max_depth=4)
     cfg["gains"]["learn"] = False
-    out = tmp_path_factory.mktemp("models") / "tiny"
-    run_training(cfg, data_dir=broad_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
+    run_training(cfg, data_dir=data_dir, trials=trials, out=out, cv=False, verbose=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_model_dir(mini_index, tmp_path_factory):
+    """A model directory trained in seconds on the 3 mini trials (cuts of 02, 07, 24; no CV, no
+    gains): for tests of what is done *with* trained models (compiled inference, export)."""
+    return train_tiny_models(mini_index.root, "02,07,24", tmp_path_factory.mktemp("models") / "tiny")
 
 
 @pytest.fixture

@@ -5,11 +5,11 @@ import sys
 import pandas as pd
 import pytest
 
-from togglecf import backend as be
-from togglecf.cli import main
-from togglecf.data import DatasetIndex
-from togglecf.runner import evaluate_trials
-from togglecf.sweep import ResultStore, journal_path, run_sweep
+from togglecf.parallel import backend as be
+from togglecf.cli.main import main
+from togglecf.data.broad import DatasetIndex
+from togglecf.run.sweep import evaluate_trials
+from togglecf.run.sweep import ResultStore, journal_path, run_sweep
 from test_data import make_broad_dir
 
 

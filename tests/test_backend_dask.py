@@ -9,12 +9,14 @@ import pytest
 
 distributed = pytest.importorskip("distributed", reason="dask.distributed not installed: pip install 'togglecf[dask]'")
 
-from togglecf.backend import DaskBackend  # noqa: E402
-from togglecf.cli import main  # noqa: E402
-from togglecf.io import to_jsonable  # noqa: E402
-from togglecf.runner import grid_points, grid_search  # noqa: E402
-from togglecf.sweep import ResultStore, journal_path, run_sweep  # noqa: E402
-from togglecf.train import load_config, run_training  # noqa: E402
+from togglecf.parallel.backend import DaskBackend  # noqa: E402
+from togglecf.cli.main import main  # noqa: E402
+from togglecf.core.io import to_jsonable  # noqa: E402
+from togglecf.run.scoring import grid_points  # noqa: E402
+from togglecf.run.sweep import grid_search  # noqa: E402
+from togglecf.run.sweep import ResultStore, journal_path, run_sweep  # noqa: E402
+from togglecf.run.config import load_config  # noqa: E402
+from togglecf.run.train import run_training  # noqa: E402
 from conftest import TINY_TRAIN_TOML  # noqa: E402
 
 pytestmark = pytest.mark.broad
@@ -156,7 +158,7 @@ def test_final_fit_with_xgboost_dask(broad_index, cluster, tmp_path):
                          verbose=False)
     run_training(_tiny_cfg(distributed_fit=True), data_dir=broad_index.root, trials=TRIALS,
                         out=tmp_path / "d", cv=False, verbose=False, backend=DaskBackend(client))
-    from togglecf.models import load_bundle, regression_metrics
+    from togglecf.learn.models import load_bundle, regression_metrics
 
     data = local["data"]
     rows = np.flatnonzero(data.train_mask)
@@ -177,8 +179,8 @@ def test_pruning_sweep_on_dask_equals_inline(broad_index, cluster, tmp_path):
     """`togglecf prune` with every (point, fold) a Dask task: the same rows and per-trial errors as
     the in-process sweep (sizes too: the same trees are measured, only where differs; the
     timings are the only columns allowed to differ)."""
-    from togglecf import prune
-    from togglecf.backend import InlineBackend
+    from togglecf.run import prune
+    from togglecf.parallel.backend import InlineBackend
 
     _, client = cluster
     (tmp_path / "tiny.toml").write_text(TINY_TRAIN_TOML)

@@ -1,4 +1,4 @@
-"""The C99 toggling filter (``togglecf.cfilter``, ``togglecf/embedded/``): its float32 quaternions,
+"""The C99 toggling filter (``togglecf.embedded.cfilter``, ``togglecf/embedded/``): its float32 quaternions,
 features and held predictions equal the Python (float64) in-loop filter on a real trial in 9D
 and 6D, bad samples do not poison its state, the harness reads CSV robustly, the state size is
 the documented formula, the sources compile warning-free for the host and for rv32imc.
@@ -22,6 +22,12 @@ Tolerances (measured first, with models/default on all 25 BROAD trials, 9D and 6
 * Features: within 1e-3 (rel) + 1e-4 (abs) of ``compute_features`` (measured on trial 15: the
   jerk features differ most, by <= 8e-4 abs / 1.5e-4 rel, all others by <= 3e-5 abs; the
   EMA-based *_dev features by ~1e-6 thanks to the compensated EMA of tcf_filter.c).
+
+Data: the models are the tiny test models trained on the shipped mini BROAD cuts of 02 and 07
+(``base_model_dir``), so every test here runs without ../shared. The port's equivalence is checked
+on the 4000-sample mini cut of trial 24 (rest, rotation, linear acceleration, taps; not trained
+on) always, and, as the real-data claim above, on the full trial 05 (~53000 samples with breaks)
+when BROAD is present (the ``broad05`` parameter of ``cf_trial``).
 """
 import shutil
 import subprocess
@@ -30,8 +36,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from togglecf import cfilter
-from togglecf.quaternion import angle_between
+from togglecf.embedded import cfilter
+from togglecf.core.quaternion import angle_between
 
 if shutil.which("gcc") is None:
     pytest.skip("gcc not installed: the C filter cannot be compiled", allow_module_level=True)
@@ -57,14 +63,28 @@ def _gains(class_names, static_state, use_mag):
 
 
 @pytest.fixture(scope="module")
-def model_dir(tiny_model_dir, tmp_path_factory):
+def base_model_dir(mini_index, tmp_path_factory):
+    """The tiny models (``conftest.train_tiny_models``), trained on the mini cuts of 02 and 07
+    only, so that the mini cut of 24 the port is checked on is unseen, as trial 05 is. On its own
+    training windows a tiny model's split thresholds are the windows' own feature values (64 bins
+    over ~270 windows; window min/max features are sample values whatever the hop phase), so the
+    float32 C features often land on the other side of a threshold: measured with this model, the
+    same held prediction at 82-88 % of the samples of the training cuts 02 and 07 (up to 0.04°),
+    at 100 % of the unseen cut of 24 (0.0002°) and 99.7 % of the full trial 05 (0.001°)."""
+    from conftest import train_tiny_models
+
+    return train_tiny_models(mini_index.root, "02,07", tmp_path_factory.mktemp("cf_base") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def model_dir(base_model_dir, tmp_path_factory):
     """A copy of the tiny model directory with fixed (not learned) 9D and 6D gains."""
-    from togglecf.filters.toggling import CompiledModels
-    from togglecf.gains import save_gains
-    from togglecf.models import load_bundle
+    from togglecf.learn.compiled import CompiledModels
+    from togglecf.toggling.gains import save_gains
+    from togglecf.learn.models import load_bundle
 
     d = tmp_path_factory.mktemp("cf_models") / "tiny"
-    shutil.copytree(tiny_model_dir, d)
+    shutil.copytree(base_model_dir, d)
     models = CompiledModels.from_bundle(load_bundle(d))
     for use_mag in (True, False):
         save_gains(d, _gains(models.class_names, models.static_state, use_mag), ["fixed-in-test"], [],
@@ -73,18 +93,27 @@ def model_dir(tiny_model_dir, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def exported(model_dir, broad_trial, tmp_path_factory):
-    """mode -> (report, harness executable)."""
+def exported(model_dir, mini_trial, tmp_path_factory):
+    """mode -> (report, harness executable), for BROAD's rate (the same in every trial)."""
     out = {}
     for mode in ("9d", "6d"):
         d = tmp_path_factory.mktemp(f"cf_{mode}")
-        rep = cfilter.export_c_filter(model_dir, d, broad_trial.fs, use_mag=mode == "9d")
+        rep = cfilter.export_c_filter(model_dir, d, mini_trial.fs, use_mag=mode == "9d")
         out[mode] = (rep, cfilter.build_harness(d))
     return out
 
 
+@pytest.fixture(params=["mini", pytest.param("broad05", marks=pytest.mark.broad)])
+def cf_trial(request, exported):
+    """The trial the C/Python equivalence is checked on: the mini cut of trial 24 (always), the
+    full trial 05 (``broad``; skipped without BROAD)."""
+    t = request.getfixturevalue("mini_trial" if request.param == "mini" else "broad_trial")
+    assert t.fs == exported["9d"][0]["fs"]  # the filter was exported for this rate
+    return t
+
+
 def _python(model_dir, trial, use_mag, gyr=None, acc=None, mag=None):
-    from togglecf.filters.toggling import load_toggling_filter
+    from togglecf.toggling import load_toggling_filter
 
     f = load_toggling_filter(model_dir, trial.fs, use_mag=use_mag)
     gyr = trial.gyr if gyr is None else gyr
@@ -99,48 +128,46 @@ def _angles_deg(qa, qb):
 
 # --------------------------------------------------------------------------------- equivalence
 
-@pytest.mark.broad
-def test_c_quaternions_match_python_9d(exported, model_dir, broad_trial):
+def test_c_quaternions_match_python_9d(exported, model_dir, cf_trial):
     _, exe = exported["9d"]
-    py = _python(model_dir, broad_trial, True)
-    qc = cfilter.run_harness(exe, broad_trial.gyr, broad_trial.acc, broad_trial.mag)
+    py = _python(model_dir, cf_trial, True)
+    qc = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, cf_trial.mag)
     assert qc.shape == py.quat.shape
     ang = _angles_deg(qc, py.quat)
     assert np.all(np.isfinite(ang))
     assert ang.max() <= ANGLE_TOL_DEG, f"max {ang.max():.4f}°, 99.9th percentile {np.percentile(ang, 99.9):.4f}°"
 
 
-@pytest.mark.broad
-def test_c_filter_arithmetic_matches_python_with_the_same_predictions(exported, model_dir, broad_trial):
+def test_c_filter_arithmetic_matches_python_with_the_same_predictions(exported, model_dir, cf_trial):
     """The toggling step alone (tcf_filter_update_pred) vs TogglingFilter, both driven by the
     Python in-loop filter's predictions: float32 vs float64 rounding only, no branch flips."""
-    from togglecf.filters.toggling import TogglingFilter, load_toggling_filter
+    from togglecf.filters.toggling import TogglingFilter
+    from togglecf.toggling import load_toggling_filter
 
     for mode in ("9d", "6d"):
         rep, exe = exported[mode]
         use_mag = mode == "9d"
-        f = load_toggling_filter(model_dir, broad_trial.fs, use_mag=use_mag)
-        mag = broad_trial.mag if use_mag else None
-        py = f.update_batch(broad_trial.gyr, broad_trial.acc, mag)
+        f = load_toggling_filter(model_dir, cf_trial.fs, use_mag=use_mag)
+        mag = cf_trial.mag if use_mag else None
+        py = f.update_batch(cf_trial.gyr, cf_trial.acc, mag)
         names = [f"p_{c}" for c in rep["class_names"]] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
         P = np.stack([py.diagnostics[k] for k in names], axis=1)
-        ref = TogglingFilter(broad_trial.fs, f.settings, use_mag=use_mag).update_batch(
-            broad_trial.gyr, broad_trial.acc, mag, predictions=P).quat
+        ref = TogglingFilter(cf_trial.fs, f.settings, use_mag=use_mag).update_batch(
+            cf_trial.gyr, cf_trial.acc, mag, predictions=P).quat
         assert np.array_equal(ref, py.quat)  # the same thing in Python
-        qc = cfilter.run_harness(exe, broad_trial.gyr, broad_trial.acc, mag, predictions=P)
+        qc = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, mag, predictions=P)
         ang = _angles_deg(qc, ref)
         assert ang.max() <= 0.01, f"{mode}: max {ang.max():.5f}°"
 
 
-@pytest.mark.broad
-def test_c_features_match_compute_features(exported, model_dir, broad_trial):
-    from togglecf.features import compute_features
-    from togglecf.filters.toggling import CompiledModels
-    from togglecf.models import load_bundle
+def test_c_features_match_compute_features(exported, model_dir, mini_trial):
+    from togglecf.features.windows import compute_features
+    from togglecf.learn.compiled import CompiledModels
+    from togglecf.learn.models import load_bundle
 
     settings = CompiledModels.from_bundle(load_bundle(model_dir)).feature_settings
     _, exe = exported["9d"]
-    t = broad_trial.slice(0, 20000)
+    t = mini_trial  # 4000 samples (was 0:20000 of trial 05; the bad samples below moved with it)
     ends_c, Xc = cfilter.harness_features(exe, t.gyr, t.acc, t.mag)
     X, ends = compute_features(t.gyr, t.acc, t.mag, t.fs, settings)
     assert np.array_equal(ends_c, ends)  # the same window ends (first full window, then every hop)
@@ -149,19 +176,18 @@ def test_c_features_match_compute_features(exported, model_dir, broad_trial):
     # window holding a bad value gives missing stats of that channel, as compute_features
     gyr, acc, mag = t.gyr.copy(), t.acc.copy(), t.mag.copy()
     acc[0], mag[:3] = np.nan, np.nan
-    acc[5000], mag[7000], gyr[9000] = np.inf, np.nan, np.nan
+    acc[1000], mag[2000], gyr[3000] = np.inf, np.nan, np.nan  # in the rest, and twice in the movement
     ends_c, Xc = cfilter.harness_features(exe, gyr, acc, mag)
     X, ends = compute_features(gyr, acc, mag, t.fs, settings)
     np.testing.assert_array_equal(np.isnan(Xc), np.isnan(X))
     np.testing.assert_allclose(Xc, X, rtol=1e-3, atol=1e-4)
-    assert np.isfinite(X[ends > 9100]).all()
+    assert np.isfinite(X[ends > 3100]).all()
 
 
-@pytest.mark.broad
-def test_c_held_predictions_match_python(exported, model_dir, broad_trial):
+def test_c_held_predictions_match_python(exported, model_dir, cf_trial):
     rep, exe = exported["9d"]
-    py = _python(model_dir, broad_trial, True)
-    _, diag = cfilter.run_harness(exe, broad_trial.gyr, broad_trial.acc, broad_trial.mag, diagnostics=True)
+    py = _python(model_dir, cf_trial, True)
+    _, diag = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, cf_trial.mag, diagnostics=True)
     kept = [f"p_{c}" for c in rep["class_names"]] + [n for n in ("eta_acc_x", "eta_acc_y", "eta_acc_z", "eta_mag_x",
                                                                   "eta_mag_y", "eta_mag_z")
                                                       if n not in rep["dropped_outputs"]]
@@ -171,29 +197,30 @@ def test_c_held_predictions_match_python(exported, model_dir, broad_trial):
     # the same samples have no prediction yet (NaN until the first full window)
     assert np.array_equal(np.isnan(P[:, 0]), np.isnan(C[:, 0]))
     ok = ~np.isnan(P[:, 0])
-    assert ok.sum() > 0.99 * len(ok)
+    # only the samples before the first full window lack one (this was "> 99 % of the samples",
+    # which holds on a full trial but not on 4000 samples, where the first window is 1.4 %)
+    first = int(np.argmax(ok))
+    assert 0 < first < rep["window"] and ok[first:].all()
     close = np.all(np.abs(C[ok] - P[ok]) <= 1e-4 + 1e-4 * np.abs(P[ok]), axis=1)
     assert close.mean() >= 0.97, f"only {close.mean():.3%} of the samples hold the same prediction"
     np.testing.assert_allclose(C[ok, :len(rep["class_names"])].sum(axis=1), 1.0, atol=1e-5)
     assert np.all(np.isfinite(diag["alpha_acc"])) and diag["ns_per_sample"] > 0
 
 
-@pytest.mark.broad
-def test_c_6d_matches_python_6d(exported, model_dir, broad_trial):
+def test_c_6d_matches_python_6d(exported, model_dir, cf_trial):
     rep, exe = exported["6d"]
     assert {"eta_mag_x", "eta_mag_y", "eta_mag_z"} <= set(rep["dropped_outputs"])  # unused in 6D
-    py = _python(model_dir, broad_trial, False)  # Python 6D: mag None (zeros in the features)
-    qc = cfilter.run_harness(exe, broad_trial.gyr, broad_trial.acc, None)  # 6-column CSV: mag = NULL
+    py = _python(model_dir, cf_trial, False)  # Python 6D: mag None (zeros in the features)
+    qc = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, None)  # 6-column CSV: mag = NULL
     ang = _angles_deg(qc, py.quat)
     assert ang.max() <= ANGLE_TOL_DEG, f"max {ang.max():.4f}°"
     # --no-mag on a 9-column file is the same
-    qn = cfilter.run_harness(exe, broad_trial.gyr, broad_trial.acc, broad_trial.mag, no_mag=True)
+    qn = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, cf_trial.mag, no_mag=True)
     assert np.array_equal(qn, qc)
 
 
-@pytest.mark.broad
-def test_bad_samples_do_not_poison_the_c_state(exported, model_dir, broad_trial):
-    t = broad_trial.slice(0, 6000)
+def test_bad_samples_do_not_poison_the_c_state(exported, model_dir, mini_trial):
+    t = mini_trial  # 4000 samples (was 0:6000 of trial 05): every index below is inside it
     gyr, acc, mag = t.gyr.copy(), t.acc.copy(), t.mag.copy()
     gyr[0] = np.nan  # a bad first sample (before initialisation)
     gyr[100:105] = np.nan
@@ -218,7 +245,6 @@ def test_bad_samples_do_not_poison_the_c_state(exported, model_dir, broad_trial)
 
 # ------------------------------------------------------------------------------------ harness
 
-@pytest.mark.broad
 def test_harness_reads_csv_robustly(exported, tmp_path):
     _, exe = exported["9d"]
     good = ("gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z\r\n"
@@ -255,10 +281,9 @@ def test_harness_reads_csv_robustly(exported, tmp_path):
 
 # ------------------------------------------------------------------------------ sizes, builds
 
-@pytest.mark.broad
 def test_state_size_is_reported_and_documented(exported, model_dir):
-    from togglecf.filters.toggling import CompiledModels
-    from togglecf.models import load_bundle
+    from togglecf.learn.compiled import CompiledModels
+    from togglecf.learn.models import load_bundle
 
     full = CompiledModels.from_bundle(load_bundle(model_dir)).forest
     for mode, (rep, _) in exported.items():
@@ -275,7 +300,6 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
         assert (Path(rep["out_dir"]) / "filter_report.json").is_file()
 
 
-@pytest.mark.broad
 def test_sources_compile_without_warnings(exported, tmp_path):
     rep, _ = exported["9d"]
     d = Path(rep["out_dir"])
@@ -288,9 +312,8 @@ def test_sources_compile_without_warnings(exported, tmp_path):
         assert res.returncode == 0 and res.stderr == "", res.stderr
 
 
-@pytest.mark.broad
 def test_riscv_compile_and_link(exported, tmp_path):
-    from togglecf.export import RISCV_GCC
+    from togglecf.embedded.toolchain import RISCV_GCC
 
     if shutil.which(RISCV_GCC) is None:
         pytest.skip(f"{RISCV_GCC} not installed: no rv32imc build")
@@ -309,14 +332,13 @@ def test_riscv_compile_and_link(exported, tmp_path):
 
 # ------------------------------------------------------------------------------------- errors
 
-@pytest.mark.broad
-def test_export_errors_name_the_problem(tiny_model_dir, model_dir, broad_trial, tmp_path, monkeypatch):
-    with pytest.raises(FileNotFoundError, match="gains.json"):  # tiny_model_dir has no gains
-        cfilter.export_c_filter(tiny_model_dir, tmp_path / "a", broad_trial.fs)
+def test_export_errors_name_the_problem(base_model_dir, model_dir, mini_trial, tmp_path, monkeypatch):
+    with pytest.raises(FileNotFoundError, match="gains.json"):  # base_model_dir has no gains
+        cfilter.export_c_filter(base_model_dir, tmp_path / "a", mini_trial.fs)
     with pytest.raises(ValueError, match="sampling_rate"):
         cfilter.export_c_filter(model_dir, tmp_path / "b", 100.0)
     with pytest.raises(FileNotFoundError, match="metadata.json"):
-        cfilter.export_c_filter(tmp_path, tmp_path / "c", broad_trial.fs)
+        cfilter.export_c_filter(tmp_path, tmp_path / "c", mini_trial.fs)
     with pytest.raises(FileNotFoundError, match="tcf_config.h"):
         cfilter.build_harness(tmp_path)
     real_which = shutil.which

@@ -4,7 +4,7 @@ import json
 import pandas as pd
 import pytest
 
-from togglecf.cli import main
+from togglecf.cli.main import main
 from conftest import TINY_TRAIN_TOML
 from test_data import make_broad_dir
 

@@ -3,9 +3,9 @@ save/restore, and accuracy on real BROAD trials."""
 import numpy as np
 import pytest
 
-from togglecf import quaternion as quat
+from togglecf.core import quaternion as quat
 from togglecf.filters import ComplementaryFilter, dt_from_timestamps, make_filter
-from togglecf.evaluation import trial_errors
+from togglecf.metrics.broad import trial_errors
 from togglecf.simulate import axis_sweep_trajectory, imu_from_orientation, random_smooth_trajectory, static_trajectory
 
 FS = 285.7142857142857

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from togglecf.data import (DataError, DataNotFoundError, DatasetIndex, Trial, load_trial, resolve_data_dir)
+from togglecf.data.broad import (DataError, DataNotFoundError, DatasetIndex, Trial, load_trial, resolve_data_dir)
 from togglecf.simulate import imu_from_orientation, random_smooth_trajectory
 
 FS = 285.7142857142857
@@ -173,7 +173,7 @@ def test_resolve_data_dir_precedence(tmp_path, monkeypatch):
 
 
 def test_no_data_anywhere_gives_one_clear_message(tmp_path, monkeypatch):
-    import togglecf.data as data
+    import togglecf.data.broad as data
     monkeypatch.delenv("TOGGLECF_DATA", raising=False)
     monkeypatch.setattr(data, "repo_root", lambda: None)
     monkeypatch.chdir(tmp_path)
@@ -212,7 +212,7 @@ def test_real_trials_load_in_both_formats(broad_index, name):
 def test_atomic_writes_have_normal_permissions(tmp_path):
     import stat
 
-    from togglecf.io import atomic_write_text
+    from togglecf.core.io import atomic_write_text
     p = atomic_write_text(tmp_path / "a" / "x.txt", "hello")
     mask = os.umask(0)
     os.umask(mask)

@@ -8,8 +8,8 @@ import zipfile
 
 import pytest
 
-from togglecf.data import DataError, DatasetIndex
-from togglecf.download import download_broad
+from togglecf.data.broad import DataError, DatasetIndex
+from togglecf.data.download import download_broad
 from test_data import make_broad_dir
 
 
@@ -81,7 +81,7 @@ def test_http_error_and_non_zip_are_clear(tmp_path, server):
 
 
 def test_cli_download(tmp_path, server, capsys):
-    from togglecf.cli import main
+    from togglecf.cli.main import main
     www, url = server
     src = make_broad_dir(tmp_path / "src", ["01_a"], ["01_a"])
     build_archive(src, www / "main.zip")

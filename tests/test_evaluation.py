@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from togglecf import quaternion as quat
-from togglecf.evaluation import (error_angles_rad, error_quaternion, group_means, remove_heading_offset, tagp,
+from togglecf.core import quaternion as quat
+from togglecf.metrics.broad import (error_angles_rad, error_quaternion, group_means, remove_heading_offset, tagp,
                                  trial_errors)
 from conftest import random_quats
 

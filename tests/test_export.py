@@ -1,4 +1,4 @@
-"""Embedded export (``togglecf.export``): TL2cgen C code and the compact array format predict
+"""Embedded export (``togglecf.embedded.forest_export``): TL2cgen C code and the compact array format predict
 what XGBoost / ``FlatForest`` predict (NaN features included), the TL2cgen facts the export
 relies on hold, prefixed models link together, and object sizes are measured."""
 import ctypes
@@ -15,8 +15,10 @@ if shutil.which("gcc") is None or shutil.which("nm") is None or shutil.which("si
 
 import xgboost as xgb  # noqa: E402
 
-from togglecf import export  # noqa: E402
-from togglecf.trees import FlatForest  # noqa: E402
+from togglecf.cli.export import add_export_parser  # noqa: E402
+from togglecf.embedded import forest_export as export  # noqa: E402
+from togglecf.embedded import toolchain  # noqa: E402
+from togglecf.learn.trees import FlatForest  # noqa: E402
 
 TOL = 1e-5
 
@@ -67,7 +69,7 @@ def firmware_lib(synthetic_export, tmp_path_factory):
     h = tmp / "harness.c"
     h.write_text(export._tl_harness([f"tcf_{n}_" for n in names], [f"tcf_{n}_header.h" for n in names]))
     srcs = [h] + [f for n in names for f in rep["models"][n]["firmware"]]
-    lib = export._gcc_shared(srcs, tmp / "libfw.so", [fw])
+    lib = toolchain.gcc_shared(srcs, tmp / "libfw.so", [fw])
     return ctypes.CDLL(str(lib)), lib
 
 
@@ -159,9 +161,9 @@ def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path):
         (tmp_path / f"{prefix}forest.h").write_text(h)
         (tmp_path / f"{prefix}forest.c").write_text(c)
         harness = tmp_path / f"{prefix}harness.c"
-        harness.write_text(export._ARRAY_HARNESS.replace("{P}", prefix).replace("{U}", prefix.upper()))
+        harness.write_text(export.ARRAY_HARNESS.replace("{P}", prefix).replace("{U}", prefix.upper()))
         for acc in ("double", "float"):
-            lib = ctypes.CDLL(str(export._gcc_shared([harness, tmp_path / f"{prefix}forest.c"],
+            lib = ctypes.CDLL(str(toolchain.gcc_shared([harness, tmp_path / f"{prefix}forest.c"],
                                                      tmp_path / f"lib{name}_{acc}.so", [tmp_path],
                                                      defines=[f"TCF_ACC_T={acc}"])))
             got = export.array_batch_predict(lib, prefix, Xt, forest.n_outputs)
@@ -173,15 +175,15 @@ def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path):
 def test_measure_sizes_host_and_riscv(tmp_path):
     c = tmp_path / "f.c"
     c.write_text("static const float t[256] = {1.0f};\nfloat f(int i) { return t[i & 255]; }\n")
-    sizes = export.measure_sizes([c])[str(c)]
+    sizes = toolchain.measure_sizes([c])[str(c)]
     assert sizes["host"]["total"] >= 1024 and sizes["host"]["text"] > 0
-    if shutil.which(export.RISCV_GCC):
+    if shutil.which(toolchain.RISCV_GCC):
         assert sizes["riscv"]["total"] >= 1024
     else:
         assert sizes["riscv"] is None
 
 
-# ------------------------------------------------------------------------------------ real data
+# ------------------------------------------- a model trained on real data (the shipped mini BROAD cuts)
 
 @pytest.fixture(scope="module")
 def tiny_models(tiny_model_dir):
@@ -189,41 +191,42 @@ def tiny_models(tiny_model_dir):
 
 
 @pytest.fixture(scope="module")
-def real_X(tiny_models, broad_index):
-    from togglecf.models import load_bundle
+def real_X(tiny_models, mini_index):
+    from togglecf.learn.models import load_bundle
 
-    X = export.window_features_of_trials(load_bundle(tiny_models), "05", broad_index.root)  # not trained on
+    # every window of the 3 mini trials (408 rows): the training trials themselves, which does not
+    # matter here (the claim is that the exported code predicts what the booster predicts on the
+    # features of real recordings, not how well; both get the same float32 features). It used the
+    # unseen full trial 05 (2040 rows) when the tiny models were trained on the full BROAD trials.
+    X = export.window_features_of_trials(load_bundle(tiny_models), None, mini_index.root)
     rng = np.random.default_rng(1)
     Xn = X[:300].copy()
     Xn[rng.random(Xn.shape) < 0.2] = np.nan  # non-finite samples make NaN features in the filter
     return np.vstack([X, Xn])
 
 
-@pytest.mark.broad
 def test_real_bundle_tl2cgen_equals_xgboost(tiny_models, real_X, tmp_path):
     rep = export.export_tl2cgen(tiny_models, tmp_path, X=real_X)
     assert rep["ok"], rep
     assert set(rep["models"]) == set(export.BOOSTER_NAMES)
 
 
-@pytest.mark.broad
 def test_real_bundle_array_equals_flatforest(tiny_models, real_X, tmp_path):
     rep = export.export_array_c(tiny_models, tmp_path, X=real_X)
     assert rep["ok"], rep
     assert set(rep["models"]) == {"forest", *export.BOOSTER_NAMES}
-    sizes = export._model_sizes(rep, "source", riscv=False)
+    sizes = export.model_sizes(rep, "source", riscv=False)
     n = rep["models"]["forest"]["n_nodes"]
     assert 8 * n <= sizes["forest"]["host"] <= 8 * n + 2048  # 8 bytes per node + walker and tables
 
 
-@pytest.mark.broad
-def test_cli_export(tiny_models, broad_index, tmp_path, capsys):
+def test_cli_export(tiny_models, mini_index, tmp_path, capsys):
     import argparse
 
     p = argparse.ArgumentParser()
-    export.add_export_parser(p.add_subparsers(dest="command"))
+    add_export_parser(p.add_subparsers(dest="command"))
     args = p.parse_args(["export", "--models", str(tiny_models), "--out", str(tmp_path / "emb"), "--format", "array",
-                         "--data", str(broad_index.root), "--trials", "05", "--no-riscv"])
+                         "--data", str(mini_index.root), "--trials", "24", "--no-riscv"])
     assert args.func(args) == 0
     out = capsys.readouterr().out
     assert "OK" in out and "forest" in out
@@ -233,35 +236,35 @@ def test_cli_export(tiny_models, broad_index, tmp_path, capsys):
 
 def test_c_float_literals_round_trip():
     for v in (0.0, -10.0, 1e-5, 1.5, -0.0, 3e38, 1e-45, 0.1):
-        lit = export._c_float(v)
+        lit = toolchain.c_float(v)
         assert lit.endswith("f") and any(c in lit for c in ".e")
         assert np.float32(float(lit[:-1])) == np.float32(v)
 
 
-@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+@pytest.mark.skipif(shutil.which(toolchain.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
 def test_linked_riscv_program(synthetic, tmp_path):
     boosters, _ = synthetic
     h, c = export.forest_to_c(FlatForest.from_booster(boosters["classifier"]), "tcf_", n_classes=3)
     (tmp_path / "tcf_forest.h").write_text(h)
     (tmp_path / "tcf_forest.c").write_text(c)
-    size = export.link_riscv([tmp_path / "tcf_forest.c"], [tmp_path], export._ARRAY_MAIN)
+    size = toolchain.link_riscv([tmp_path / "tcf_forest.c"], [tmp_path], export.ARRAY_LINK_MAIN)
     if size is None:
         pytest.skip("picolibc for riscv64-unknown-elf not installed")
     assert size["flash"] > 8 * FlatForest.from_booster(boosters["classifier"]).n_nodes
 
 
-@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+@pytest.mark.skipif(shutil.which(toolchain.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
 def test_linked_riscv_tl2cgen_models_together(synthetic_export):
     rep, _ = synthetic_export
     files = [f for e in rep["models"].values() for f in e["firmware"]]
-    size = export.link_riscv(files, [rep["firmware_dir"]],
-                             export._tl2cgen_main([f"tcf_{n}_" for n in rep["models"]], 6, 3))
+    size = toolchain.link_riscv(files, [rep["firmware_dir"]],
+                             export.tl2cgen_link_main([f"tcf_{n}_" for n in rep["models"]], 6, 3))
     if size is None:
         pytest.skip("picolibc for riscv64-unknown-elf not installed")
     assert size["flash"] > 1000
 
 
-@pytest.mark.skipif(shutil.which(export.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
+@pytest.mark.skipif(shutil.which(toolchain.RISCV_GCC) is None, reason="riscv64-unknown-elf-gcc not installed")
 def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
     """gcc's -fstack-usage figure for tcf_predict: the walker keeps one accumulator per output
     (double by default) on the stack, so more outputs need more stack, and never less than that."""
@@ -270,7 +273,7 @@ def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
     h, c = export.forest_to_c(forest, "tcf_", n_classes=3)
     (tmp_path / "tcf_forest.h").write_text(h)
     (tmp_path / "tcf_forest.c").write_text(c)
-    stack = export.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "tcf_predict")
+    stack = toolchain.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "tcf_predict")
     assert 8 * forest.n_outputs <= stack < 1024
     with pytest.raises(RuntimeError, match="no stack-usage entry"):
-        export.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")
+        toolchain.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")

@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from togglecf.data import GRAVITY
-from togglecf.features import (LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, SchemaMismatchError,
+from togglecf.data.broad import GRAVITY
+from togglecf.features.windows import (LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, SchemaMismatchError,
                                compute_features, feature_schema, hop_length, window_end_indices,
                                window_length)
 

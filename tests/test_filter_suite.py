@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from togglecf import quaternion as Q
+from togglecf.core import quaternion as Q
 from togglecf import simulate as sim
 from togglecf.filters import FILTERS, make_filter
 from togglecf.filters.aqua import adaptive_gain, scale_delta_quat

@@ -3,8 +3,8 @@ linear-acceleration bursts, and learn the gyro bias at rest."""
 import numpy as np
 import pytest
 
-from togglecf import quaternion as quat
-from togglecf.gains import GainSearch, learn_gains, mean_total_rmse
+from togglecf.core import quaternion as quat
+from togglecf.toggling.gains import GainSearch, learn_gains, mean_total_rmse
 from togglecf.filters.toggling import TogglingSettings
 from togglecf.simulate import imu_from_orientation, random_smooth_trajectory
 
@@ -53,8 +53,8 @@ def test_parallel_objective_equals_serial():
 
 
 def test_fused_objective_equals_broad_metric(rng):
-    from togglecf.evaluation import trial_errors
-    from togglecf.gains import _total_rmse_deg
+    from togglecf.metrics.broad import trial_errors
+    from togglecf.toggling.gains import _total_rmse_deg
     from conftest import random_quats
     q_ref = random_quats(rng, 3000)
     q_est = quat.multiply(quat.from_rotvec(0.05 * rng.standard_normal((3000, 3))), q_ref) * -2.0  # scaled, flipped

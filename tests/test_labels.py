@@ -4,8 +4,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from togglecf import quaternion as quat
-from togglecf.labels import (STATE_NAMES, LabelSettings, angular_velocity, bridge_gaps, estimate_mag_ref,
+from togglecf.core import quaternion as quat
+from togglecf.learn.labels import (STATE_NAMES, LabelSettings, angular_velocity, bridge_gaps, estimate_mag_ref,
                              linear_acceleration, make_targets, noise_targets)
 from togglecf.simulate import (EARTH_MAG_ENU, axis_sweep_trajectory, imu_from_orientation,
                                random_smooth_trajectory, static_trajectory)

@@ -1,13 +1,16 @@
-"""Models: schema checks, leakage-free CV by trial, determinism, held-out skill on real trials."""
+"""Models: schema checks, leakage-free CV by trial, determinism (on the shipped mini BROAD cuts),
+held-out skill on real trials (the full BROAD)."""
 import json
 
 import numpy as np
 import pytest
 
-from togglecf.features import FeatureSettings, SchemaMismatchError, feature_schema
-from togglecf.models import (MotionClassifier, NoiseRegressor, classification_metrics, load_bundle,
+from togglecf.features.windows import FeatureSettings, SchemaMismatchError, feature_schema
+from togglecf.learn.models import (MotionClassifier, NoiseRegressor, classification_metrics, load_bundle,
                              regression_metrics, save_bundle)
-from togglecf.train import load_config, make_folds, run_training
+from togglecf.learn.folds import window_group_folds as make_folds
+from togglecf.run.config import load_config
+from togglecf.run.train import run_training
 
 SMALL = {"classifier": {"n_estimators": 25, "max_depth": 4}, "regressor": {"n_estimators": 25, "max_depth": 4},
          "features": {"hop_s": 0.1}}
@@ -82,20 +85,18 @@ def test_metrics_against_hand_values():
     assert r["r2"] == pytest.approx(1 - (1 + 4 + 9 + 9 + 16 + 25) / 6.0)
 
 
-# ------------------------------------------------------------------------------ real BROAD trials
+# ------------------------------------------------------------- real trials: the shipped mini cuts
 
 @pytest.fixture(scope="module")
-def cv_run(broad_index, tmp_path_factory):
-    """Small CV (leave-one-trial-out over 4 varied trials) on real data, ~30 s on 2 cores."""
-    cfg = _small_config(cv_folds=4)
-    return run_training(cfg, data_dir=broad_index.root, trials="02,07,10,24",
-                        out=tmp_path_factory.mktemp("cv_model"), verbose=False)
+def mini_cv_run(mini_index, tmp_path_factory):
+    """Small CV (leave-one-trial-out over the 3 mini trials) on real data, a few seconds."""
+    cfg = _small_config(cv_folds=3)
+    return run_training(cfg, data_dir=mini_index.root, trials="02,07,24",
+                        out=tmp_path_factory.mktemp("mini_cv_model"), verbose=False)
 
 
-@pytest.mark.broad
-@pytest.mark.slow
-def test_no_leakage_in_cv(cv_run):
-    data, folds = cv_run["data"], cv_run["cv"]["folds"]
+def test_no_leakage_in_cv(mini_cv_run):
+    data, folds = mini_cv_run["data"], mini_cv_run["cv"]["folds"]
     L = data.window_samples
     for f in folds:
         test_g = [data.trials.index(t) for t in f["test_trials"]]
@@ -106,7 +107,33 @@ def test_no_leakage_in_cv(cv_run):
         # every sample of every training window belongs to a training trial
         assert not np.isin(data.group[train_rows], test_g).any()
         assert np.all(data.end[train_rows] - L + 1 >= 0)
-    assert sorted(t for f in folds for t in f["test_trials"]) == sorted(data.trials)
+    assert len(folds) == 3 and sorted(t for f in folds for t in f["test_trials"]) == sorted(data.trials)
+
+
+def test_same_seed_byte_identical(mini_index, tmp_path):
+    cfg = _small_config(seed=3)
+    outs = []
+    for i in range(2):
+        out = tmp_path / f"run{i}"
+        run_training(cfg, data_dir=mini_index.root, trials="02,24", out=out, cv=False, verbose=False)
+        outs.append(out)
+    files = sorted(p.name for p in outs[0].glob("*.ubj"))
+    assert len(files) == 7  # classifier + 3 acc + 3 mag
+    for name in files:
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    m0, m1 = (json.loads((o / "metadata.json").read_text()) for o in outs)
+    assert m0["model_files"] == m1["model_files"]
+    assert m0["feature_schema"]["hash"] == m1["feature_schema"]["hash"]
+
+
+# ------------------------------------------------------------------- real BROAD trials (full data)
+
+@pytest.fixture(scope="module")
+def cv_run(broad_index, tmp_path_factory):
+    """Small CV (leave-one-trial-out over 4 varied trials) on real data, ~30 s on 2 cores."""
+    cfg = _small_config(cv_folds=4)
+    return run_training(cfg, data_dir=broad_index.root, trials="02,07,10,24",
+                        out=tmp_path_factory.mktemp("cv_model"), verbose=False)
 
 
 @pytest.mark.broad
@@ -124,20 +151,3 @@ def test_held_out_skill(cv_run):
     assert overall["acc"]["r2"] > 0.0
     assert overall["acc"]["rmse"] < overall["acc_zero"]["rmse"]
 
-
-@pytest.mark.broad
-@pytest.mark.slow
-def test_same_seed_byte_identical(broad_index, tmp_path):
-    cfg = _small_config(seed=3)
-    outs = []
-    for i in range(2):
-        out = tmp_path / f"run{i}"
-        run_training(cfg, data_dir=broad_index.root, trials="02,24", out=out, cv=False, verbose=False)
-        outs.append(out)
-    files = sorted(p.name for p in outs[0].glob("*.ubj"))
-    assert len(files) == 7  # classifier + 3 acc + 3 mag
-    for name in files:
-        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
-    m0, m1 = (json.loads((o / "metadata.json").read_text()) for o in outs)
-    assert m0["model_files"] == m1["model_files"]
-    assert m0["feature_schema"]["hash"] == m1["feature_schema"]["hash"]

@@ -1,4 +1,4 @@
-"""``togglecf.plots``: figures render headless (Agg), files are valid PNG/SVG/GIF, and what is
+"""``togglecf.report.plots``: figures render headless (Agg), files are valid PNG/SVG/GIF, and what is
 drawn is the data (line data in the Axes, the curves' colours in the PNG's pixels)."""
 import argparse
 
@@ -11,8 +11,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from matplotlib.colors import to_rgb  # noqa: E402
 
-from togglecf import plots  # noqa: E402
-from togglecf import quaternion as quat  # noqa: E402
+from togglecf.cli.plot import add_plot_parser  # noqa: E402
+from togglecf.report import plots  # noqa: E402
+from togglecf.core import quaternion as quat  # noqa: E402
 from togglecf import simulate as sim  # noqa: E402
 
 FS = 100.0
@@ -119,7 +120,7 @@ def test_animate_3d_mp4(tmp_path, trial, q_offset):
 
 def _cli(argv):
     p = argparse.ArgumentParser(prog="togglecf")
-    plots.add_plot_parser(p.add_subparsers(dest="command"))
+    add_plot_parser(p.add_subparsers(dest="command"))
     args = p.parse_args(argv)
     return args.func(args)
 

@@ -1,12 +1,12 @@
-"""The pruning sweep (togglecf.prune) and `togglecf export --max-bytes`."""
+"""The pruning sweep (togglecf.run.prune) and `togglecf export --max-bytes`."""
 import json
 
 import numpy as np
 import pytest
 
 from conftest import TINY_TRAIN_TOML
-from togglecf import prune
-from togglecf.prune import PrunePoint
+from togglecf.run import prune
+from togglecf.run.prune import PrunePoint
 
 
 def _row(key, size, err, reference=False):
@@ -40,37 +40,41 @@ def test_points_apply_to_a_config_copy_and_the_grid_runs_the_reference_once():
     assert cfg["classifier"]["n_estimators"] == 10 and cfg["run"]["max_features"] == 0  # untouched
 
 
-# ---------------------------------------------------------------------------------- real data
+# ------------------------------------------------------- real trials: the shipped mini BROAD cuts
 
 POINTS = [PrunePoint(8, 3, 4, 3, 0, True), PrunePoint(3, 2, 3, 2, 6)]
+#: held-out folds of the sweep: leave-one-trial-out over the 3 mini trials. (It was 2 folds over
+#: 4 full trials; 2 folds of 3 trials would leave one fold a single training trial, which the 2
+#: inner folds of the gain search cannot split by trial.)
+FOLDS = 3
 
 
 @pytest.fixture(scope="module")
-def tiny_sweep(broad_index, tmp_path_factory):
-    """A model directory trained on 4 trials with a tiny config, and a 2-point sweep of it
-    (2 held-out folds, 2 inner folds); the log lines are kept to count computed points."""
-    from togglecf.train import run_training
+def tiny_sweep(mini_index, tmp_path_factory):
+    """A model directory trained on the 3 mini trials with a tiny config, and a 2-point sweep of
+    it (3 held-out folds, 2 inner folds); the log lines are kept to count computed points."""
+    from togglecf.run.train import run_training
 
     root = tmp_path_factory.mktemp("prune")
     (root / "tiny.toml").write_text(TINY_TRAIN_TOML)
-    run_training(str(root / "tiny.toml"), data_dir=broad_index.root, trials="02,07,10,24", out=root / "models",
+    run_training(str(root / "tiny.toml"), data_dir=mini_index.root, trials="02,07,24", out=root / "models",
                  cv=True, verbose=False)
     logs = []
-    rows = prune.pruning_sweep(root / "models", root / "sweep", POINTS, folds=2, inner_folds=2,
-                               data_dir=broad_index.root, riscv=False, log=logs.append)
+    rows = prune.pruning_sweep(root / "models", root / "sweep", POINTS, folds=FOLDS, inner_folds=2,
+                               data_dir=mini_index.root, riscv=False, log=logs.append)
     return root, rows, logs
 
 
-@pytest.mark.broad
 @pytest.mark.slow
-def test_sweep_reference_equals_an_independent_held_out_run(tiny_sweep, broad_index):
+def test_sweep_reference_equals_an_independent_held_out_run(tiny_sweep, mini_index):
     """The sweep reuses one dataset for all folds and points; the reference point must give the
     same per-trial errors as training each fold from scratch (run_training on the fold's trials)
     and filtering its test trials: the same protocol as the study, computed the slow way."""
-    from togglecf.evaluation import trial_errors
-    from togglecf.filters.toggling import load_toggling_filter
-    from togglecf.study import trial_folds
-    from togglecf.train import load_config, run_training
+    from togglecf.metrics.broad import trial_errors
+    from togglecf.toggling import load_toggling_filter
+    from togglecf.run.study import trial_folds
+    from togglecf.run.config import load_config
+    from togglecf.run.train import run_training
 
     root, rows, _ = tiny_sweep
     rec = [json.loads(line) for line in (root / "sweep" / "sweep_rows.jsonl").read_text().splitlines()]
@@ -78,14 +82,14 @@ def test_sweep_reference_equals_an_independent_held_out_run(tiny_sweep, broad_in
     cfg = load_config(str(root / "tiny.toml"))
     cfg["gains"].update(learn=True, modes=["9d"])
     cfg["run"]["cv_folds"] = 2
-    names = broad_index.select("02,07,10,24")
+    names = mini_index.select("02,07,24")
     expected = {}
-    for k, test in enumerate(trial_folds(names, 2)):
+    for k, test in enumerate(trial_folds(names, FOLDS)):
         train = [n for n in names if n not in test]
         out = root / f"independent{k}"
-        run_training(cfg, data_dir=broad_index.root, trials=",".join(train), out=out, cv=True, verbose=False)
+        run_training(cfg, data_dir=mini_index.root, trials=",".join(train), out=out, cv=True, verbose=False)
         for n in test:
-            t = broad_index.load(n)
+            t = mini_index.load(n)
             o = load_toggling_filter(out, t.fs).update_batch(t.gyr, t.acc, t.mag)
             expected[n] = trial_errors(o.quat, t.opt_quat, t.movement)["total"]
     assert got.keys() == expected.keys()
@@ -94,7 +98,6 @@ def test_sweep_reference_equals_an_independent_held_out_run(tiny_sweep, broad_in
     assert rows[0]["mean_total"] == pytest.approx(np.mean(list(expected.values())), rel=1e-9)
 
 
-@pytest.mark.broad
 @pytest.mark.slow
 def test_sweep_rows_sizes_and_feature_limit(tiny_sweep):
     _, rows, _ = tiny_sweep
@@ -108,15 +111,14 @@ def test_sweep_rows_sizes_and_feature_limit(tiny_sweep):
         assert r["array_riscv_bytes"] is None  # riscv=False
 
 
-@pytest.mark.broad
 @pytest.mark.slow
-def test_sweep_resumes_with_only_the_missing_points(tiny_sweep, broad_index):
+def test_sweep_resumes_with_only_the_missing_points(tiny_sweep, mini_index):
     root, rows, logs = tiny_sweep
     assert sum("[1/2]" in m or "[2/2]" in m for m in logs) == 2
     logs2 = []
     more = POINTS + [PrunePoint(2, 2, 2, 2, 0)]
-    rows2 = prune.pruning_sweep(root / "models", root / "sweep", more, folds=2, inner_folds=2,
-                                data_dir=broad_index.root, riscv=False, log=logs2.append)
+    rows2 = prune.pruning_sweep(root / "models", root / "sweep", more, folds=FOLDS, inner_folds=2,
+                                data_dir=mini_index.root, riscv=False, log=logs2.append)
     assert "(2 already done" in logs2[0]
     assert [m.split(":")[0] for m in logs2 if m.startswith("[")] == ["[1/1] c2x2_r2x2_fall"]  # only the new one
     assert rows2[:2] == rows
@@ -128,19 +130,18 @@ def test_sweep_resumes_with_only_the_missing_points(tiny_sweep, broad_index):
     assert len(pd.read_csv(paths["pareto"])) == int(df["pareto"].sum())
 
 
-@pytest.mark.broad
 @pytest.mark.slow
-def test_export_max_bytes_trains_and_exports_the_chosen_point(tiny_sweep, broad_index, tmp_path):
+def test_export_max_bytes_trains_and_exports_the_chosen_point(tiny_sweep, mini_index, tmp_path):
     """`togglecf export --max-bytes`: resumes the sweep (no point recomputed), picks the most
     accurate point within the budget, trains it on the model's training trials and exports it."""
-    from togglecf.cli import main
+    from togglecf.cli.main import main
 
     root, rows, _ = tiny_sweep
     budget = max(r["array_host_bytes"] for r in rows) - 1  # only the small point fits (host sizes: --no-riscv)
     out = tmp_path / "emb"
     rc = main(["export", "--models", str(root / "models"), "--out", str(out), "--max-bytes", str(budget),
-               "--sweep", str(root / "sweep"), "--trees", "3", "--depths", "2", "--features", "6", "--folds", "2",
-               "--inner-folds", "2", "--data", str(broad_index.root), "--no-riscv", "--format", "array",
+               "--sweep", str(root / "sweep"), "--trees", "3", "--depths", "2", "--features", "6", "--folds", str(FOLDS),
+               "--inner-folds", "2", "--data", str(mini_index.root), "--no-riscv", "--format", "array",
                "--trials", "07"])
     assert rc == 0
     rep = json.loads((out / "export_report.json").read_text())

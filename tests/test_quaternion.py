@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from togglecf import quaternion as quat
+from togglecf.core import quaternion as quat
 from conftest import random_quats
 
 ATOL = 1e-12  # pure float64 algebra on unit inputs: rounding only

@@ -2,9 +2,9 @@
 their docstrings say, checked against closed forms."""
 import numpy as np
 
-from togglecf import quaternion as Q
+from togglecf.core import quaternion as Q
 from togglecf import simulate as sim
-from togglecf.data import GRAVITY
+from togglecf.data.broad import GRAVITY
 
 FS = 200.0
 

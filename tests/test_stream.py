@@ -1,4 +1,4 @@
-"""``togglecf.stream``: a corrupted 286 Hz line stream through a pseudo-terminal read with
+"""``togglecf.live.stream``: a corrupted 286 Hz line stream through a pseudo-terminal read with
 pyserial gives exactly the batch filter's orientation on the valid samples."""
 import io
 import os
@@ -11,7 +11,7 @@ import pytest
 
 from togglecf import simulate as sim
 from togglecf.filters import make_filter
-from togglecf.stream import (RECONNECT, StreamConfig, StreamProcessor, file_chunks, parse_units,
+from togglecf.live.stream import (RECONNECT, StreamConfig, StreamProcessor, file_chunks, parse_units,
                              serial_chunks)
 
 serial = pytest.importorskip("serial")
@@ -226,7 +226,7 @@ def test_time_reset_and_units():
 def _cli(argv):
     import argparse
 
-    from togglecf.stream import add_stream_parser
+    from togglecf.cli.stream import add_stream_parser
 
     p = argparse.ArgumentParser(prog="togglecf")
     add_stream_parser(p.add_subparsers(dest="command"))

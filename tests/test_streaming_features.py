@@ -1,9 +1,9 @@
-"""The streaming (in-loop) features equal the vectorised definition in togglecf.features."""
+"""The streaming (in-loop) features equal the vectorised definition in togglecf.features.windows."""
 import numpy as np
 import pytest
 
-from togglecf.features import FeatureSettings, compute_features
-from togglecf.streaming_features import StreamingFeatures
+from togglecf.features.windows import FeatureSettings, compute_features
+from togglecf.features.streaming import StreamingFeatures
 
 # Same formulas, different summation order (direct sums here, shifted cumulative sums there):
 # differences are rounding, ~1e-12 of the channel scale over a 50 000-sample trial.
@@ -75,7 +75,7 @@ def test_bad_first_and_middle_samples_streaming_equals_vectorised(broad_trial):
     late = ends > 2600  # one window after the last bad sample: every feature is finite again
     assert np.isfinite(X[late]).all()
     # the references did start: mag_norm_dev is small, not |m| (reference stuck at NaN or 0)
-    from togglecf.features import feature_schema
+    from togglecf.features.windows import feature_schema
 
     j = feature_schema(settings).names.index("mag_norm_dev_last")
     assert np.nanmax(np.abs(X[late, j])) < 5.0

@@ -8,8 +8,8 @@ import pandas as pd
 import pytest
 
 from conftest import TINY_TRAIN_TOML
-from togglecf.runner import evaluate_trials
-from togglecf.study import load_study_config, run_study, trial_folds
+from togglecf.run.sweep import evaluate_trials
+from togglecf.run.study import load_study_config, run_study, trial_folds
 
 pytestmark = pytest.mark.broad
 

@@ -3,7 +3,7 @@ toggle itself, bias learning at rest, noise removal, batch/sample identity, bad 
 import numpy as np
 import pytest
 
-from togglecf import quaternion as quat
+from togglecf.core import quaternion as quat
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.simulate import axis_sweep_trajectory, imu_from_orientation, static_trajectory
 

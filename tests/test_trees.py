@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import xgboost as xgb
 
-from togglecf.trees import FlatForest
+from togglecf.learn.trees import FlatForest
 
 # xgboost sums leaves in float32; we sum in float64: differences are float32 rounding of the
 # margin (~1e-7 relative), far below the 1e-5 the export must meet.

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import quaternion as quat
-from .data import GRAVITY, Trial
+from togglecf.core import quaternion as quat
+from togglecf.data.broad import GRAVITY, Trial
 
 __all__ = ["EARTH_MAG_ENU", "imu_from_orientation", "static_trajectory", "axis_sweep_trajectory",
            "random_smooth_trajectory", "gimbal_trajectory", "turntable_trajectory", "random_walk_bias",

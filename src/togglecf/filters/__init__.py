@@ -3,14 +3,14 @@
 All filters output sensor -> ENU quaternions ``[w, x, y, z]``; ``FilterOutput.in_frame``
 converts to NED or NWU.
 """
-from .base import FilterOutput, FilterSettings, OrientationFilter, dt_from_timestamps
-from .acc_mag import AccMagFilter, AccMagSettings
-from .aqua import AquaFilter, AquaSettings
-from .complementary import CFSettings, ComplementaryFilter
-from .ekf import EKFFilter, EKFSettings
-from .gyro_only import GyroOnlyFilter, GyroSettings
-from .madgwick import MadgwickFilter, MadgwickSettings
-from .mahony import MahonyFilter, MahonySettings
+from togglecf.filters.acc_mag import AccMagFilter, AccMagSettings
+from togglecf.filters.aqua import AquaFilter, AquaSettings
+from togglecf.filters.base import FilterOutput, FilterSettings, OrientationFilter, dt_from_timestamps
+from togglecf.filters.complementary import CFSettings, ComplementaryFilter
+from togglecf.filters.ekf import EKFFilter, EKFSettings
+from togglecf.filters.gyro_only import GyroOnlyFilter, GyroSettings
+from togglecf.filters.madgwick import MadgwickFilter, MadgwickSettings
+from togglecf.filters.mahony import MahonyFilter, MahonySettings
 
 FILTERS = {
     cls.name: cls

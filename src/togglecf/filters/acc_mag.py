@@ -9,11 +9,19 @@ A sample whose acc (or, in 9D, mag) is invalid keeps the previous orientation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, acc_mag_quaternion, initialize_from_sample, load_quat, store_quat, vector_ok
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    acc_mag_quaternion,
+    initialize_from_sample,
+    load_quat,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["AccMagFilter", "AccMagSettings"]
 
@@ -23,10 +31,18 @@ class AccMagSettings(FilterSettings):
     """No parameters besides ``max_dt`` (unused here; see ``FilterSettings``)."""
 
 
+class AccMagCoefficients(NamedTuple):
+    """``params`` of ``accmag_step``: only the common ``use_mag``, ``max_dt`` (see
+    ``filters.base``; ``max_dt`` is unused, there is no gyro propagation)."""
+
+    use_mag: float
+    max_dt: float
+
+
 @njit(cache=True)
 def accmag_step(state, params, gyr, acc, mag, dt, diag):
     """One sample. diag: [1.0 if the orientation was measured, 1.0 if mag was used]."""
-    use_mag = params[0] > 0.5
+    use_mag = params.use_mag > 0.5
     mag_ok = use_mag and vector_ok(mag)
     diag[0] = 0.0
     diag[1] = 0.0
@@ -47,8 +63,9 @@ class AccMagFilter(OrientationFilter):
 
     name = "accmag"
     Settings = AccMagSettings
+    Coefficients = AccMagCoefficients
     diagnostic_names = ("measured", "mag_used")
     step = accmag_step
 
-    def _coefficients(self) -> np.ndarray:
-        return np.zeros(0)
+    def _coefficients(self) -> dict:
+        return {}

@@ -22,19 +22,30 @@ applied on the left; Δq_mag is the paper's eq. 58 with (l_x, l_y)_NWU = (l_y, �
 Δq_mag = [√(Γ + l_y√Γ)/√(2Γ), 0, 0, l_x/√(2(Γ + l_y√Γ))] (a rotation about the vertical is
 the same quaternion in NWU and ENU).
 
-Bad samples: invalid Δt or gyro -> no prediction and no bias update; invalid acc -> no
-correction (nor the magnetometer step); invalid mag -> no heading correction.
+Bad samples (``filters.base``): invalid Δt or gyro (non-finite, or saturated: an axis of the raw
+reading at or beyond ``GYRO_FULL_SCALE``) -> no prediction and no bias update, and an invalid
+gyro sample is not kept as the previous ω; invalid acc -> no correction (nor the magnetometer
+step); invalid mag -> no heading correction.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, initialize_from_sample, load_quat, propagate_gyro, store_quat, vector_ok
-from ..quaternion import multiply_scalar, normalize_scalar, rotate_scalar
+from togglecf.core.quaternion import multiply_scalar, normalize_scalar, rotate_scalar
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    gyro_valid,
+    initialize_from_sample,
+    load_quat,
+    propagate_gyro,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["AquaFilter", "AquaSettings", "adaptive_gain", "scale_delta_quat"]
 
@@ -88,6 +99,27 @@ class AquaSettings(FilterSettings):
             raise ValueError("gravity must be > 0, thresholds >= 0, lerp_threshold in [-1, 1]")
 
 
+class AquaCoefficients(NamedTuple):
+    """``params`` of ``aqua_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+    the ``AquaSettings`` of the same names (the two switches ``adaptive`` and ``estimate_bias``
+    as 1.0/0.0)."""
+
+    use_mag: float
+    max_dt: float
+    gain_acc: float
+    gain_mag: float
+    adaptive: float
+    err_low: float
+    err_high: float
+    lerp_threshold: float
+    gravity: float
+    bias_alpha: float
+    acc_threshold: float
+    delta_gyro_threshold: float
+    gyro_threshold: float
+    estimate_bias: float
+
+
 @njit(cache=True, inline="always")
 def adaptive_gain(alpha_bar, acc_norm, gravity, t1, t2):
     """Eq. 60-61: α = ᾱ·f(e_m), e_m = |‖a‖ − g|/g; f = 1 for e_m ≤ t1, (t2 − e_m)/(t2 − t1)
@@ -120,14 +152,16 @@ def scale_delta_quat(dq, gain, eps):
 def aqua_step(state, params, gyr, acc, mag, dt, diag):
     """One sample. state[5:8] bias b [rad/s], state[8:11] previous ω, state[11] 1.0 when it is
     valid. diag: [α used, steady, b_x, b_y, b_z, mag used, SLERP used]."""
-    use_mag, max_dt = params[0] > 0.5, params[1]
-    gain_acc, gain_mag, adaptive, t1, t2, eps = params[2], params[3], params[4] > 0.5, params[5], params[6], params[7]
-    grav, lam, k_a, k_dw, k_w, est_bias = params[8], params[9], params[10], params[11], params[12], params[13] > 0.5
+    use_mag, max_dt = params.use_mag > 0.5, params.max_dt
+    gain_acc, gain_mag, adaptive = params.gain_acc, params.gain_mag, params.adaptive > 0.5
+    t1, t2, eps = params.err_low, params.err_high, params.lerp_threshold
+    grav, lam, est_bias = params.gravity, params.bias_alpha, params.estimate_bias > 0.5
+    k_a, k_dw, k_w = params.acc_threshold, params.delta_gyro_threshold, params.gyro_threshold
     acc_ok = vector_ok(acc)
     mag_ok = use_mag and vector_ok(mag)
     for i in range(7):
         diag[i] = 0.0
-    gyr_ok = math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2])
+    gyr_ok = gyro_valid(gyr)  # finite and not saturated (judged on the raw reading)
     if state[4] < 0.5:
         initialize_from_sample(state, acc, mag, mag_ok)
     else:
@@ -144,7 +178,9 @@ def aqua_step(state, params, gyr, acc, mag, dt, diag):
                     state[5 + i] += lam * (gyr[i] - state[5 + i])
                 diag[1] = 1.0
         # 2. prediction with the bias-corrected rate
-        q, _ = propagate_gyro(load_quat(state), (gyr[0] - state[5], gyr[1] - state[6], gyr[2] - state[7]), dt, max_dt)
+        q = load_quat(state)
+        if gyr_ok:
+            q, _ = propagate_gyro(q, (gyr[0] - state[5], gyr[1] - state[6], gyr[2] - state[7]), dt, max_dt)
         if acc_ok:
             # 3. accelerometer delta quaternion from the predicted gravity g_p = R(q_ω) â (eq. 44)
             gx, gy, gz = rotate_scalar(q, (acc[0] / na, acc[1] / na, acc[2] / na))
@@ -184,12 +220,13 @@ class AquaFilter(OrientationFilter):
 
     name = "aqua"
     Settings = AquaSettings
+    Coefficients = AquaCoefficients
     state_names = ("bias_x", "bias_y", "bias_z", "prev_gyr_x", "prev_gyr_y", "prev_gyr_z", "prev_gyr_valid")
     diagnostic_names = ("alpha", "steady", "bias_x", "bias_y", "bias_z", "mag_used", "slerp")
     step = aqua_step
 
-    def _coefficients(self) -> np.ndarray:
+    def _coefficients(self) -> dict:
         s = self.settings
-        return np.array([s.gain_acc, s.gain_mag, float(s.adaptive), s.err_low, s.err_high, s.lerp_threshold,
-                         s.gravity, s.bias_alpha, s.acc_threshold, s.delta_gyro_threshold, s.gyro_threshold,
-                         float(s.estimate_bias)])
+        own = {f: getattr(s, f) for f in AquaCoefficients._fields[2:]}  # named as the settings
+        own.update(adaptive=float(s.adaptive), estimate_bias=float(s.estimate_bias))
+        return own

@@ -12,15 +12,23 @@ is about ``Ts / α`` (α = 0.00028 at 285.7 Hz: ~12.5 s).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import (FilterSettings, OrientationFilter, acc_mag_quaternion, initialize_from_sample, load_quat,
-                   propagate_gyro, store_quat, vector_ok)
-from ..quaternion import normalize_scalar
+from togglecf.core.quaternion import normalize_scalar
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    acc_mag_quaternion,
+    initialize_from_sample,
+    load_quat,
+    propagate_gyro,
+    store_quat,
+    vector_ok,
+)
 
-__all__ = ["ComplementaryFilter", "CFSettings"]
+__all__ = ["CFSettings", "ComplementaryFilter"]
 
 
 @dataclass(frozen=True)
@@ -40,10 +48,19 @@ class CFSettings(FilterSettings):
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
 
 
+class CFCoefficients(NamedTuple):
+    """``params`` of ``cf_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+    ``alpha``, the weight of the acc/mag orientation per sample (``CFSettings.alpha``)."""
+
+    use_mag: float
+    max_dt: float
+    alpha: float
+
+
 @njit(cache=True)
 def cf_step(state, params, gyr, acc, mag, dt, diag):
     """One sample of the fixed-gain CF (see module docstring). diag: [alpha used, mag used]."""
-    use_mag, max_dt, alpha = params[0] > 0.5, params[1], params[2]
+    use_mag, max_dt, alpha = params.use_mag > 0.5, params.max_dt, params.alpha
     acc_ok = vector_ok(acc)
     mag_ok = use_mag and vector_ok(mag)
     diag[0] = 0.0
@@ -68,8 +85,9 @@ class ComplementaryFilter(OrientationFilter):
 
     name = "cf"
     Settings = CFSettings
+    Coefficients = CFCoefficients
     diagnostic_names = ("alpha", "mag_used")
     step = cf_step
 
-    def _coefficients(self) -> np.ndarray:
-        return np.array([self.settings.alpha])
+    def _coefficients(self) -> dict:
+        return {"alpha": self.settings.alpha}

@@ -27,19 +27,36 @@ Derivation of H (ours, in the ENU/sensor->earth convention): with R = R̂(I + [�
 Rᵀ e = ê − δθ × ê = ê + [ê]× δθ; a bias error δb rotates the estimate by −κ δb over the step.
 P (12×12, row-major) lives in the state vector, so get_state/set_state capture it.
 
-Bad samples: invalid Δt or gyro -> no propagation (κ = 0 in Q); invalid acc -> no gravity
-update; invalid mag -> no magnetic update.
+Bad samples (``filters.base``): invalid Δt or gyro (non-finite, or saturated: an axis of the raw
+reading at or beyond ``GYRO_FULL_SCALE``) -> no propagation (κ = 0 in Q); invalid acc -> no
+gravity update; invalid mag -> no magnetic update.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, initialize_from_sample, load_quat, propagate_gyro, store_quat, vector_ok
-from ..quaternion import from_rotvec_scalar, multiply_scalar, normalize_scalar, rotate_inverse_scalar, rotate_scalar
+from togglecf.core.quaternion import (
+    from_rotvec_scalar,
+    multiply_scalar,
+    normalize_scalar,
+    rotate_inverse_scalar,
+    rotate_scalar,
+)
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    gyro_valid,
+    initialize_from_sample,
+    load_quat,
+    propagate_gyro,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["EKFFilter", "EKFSettings"]
 
@@ -103,6 +120,25 @@ class EKFSettings(FilterSettings):
             raise ValueError("expected_mag_strength and gravity must be > 0")
 
 
+class EKFCoefficients(NamedTuple):
+    """``params`` of ``ekf_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+    the ``EKFSettings`` of the same names (η, β, λ, ξ, ν, μ, γ, σ, M_expected, g, the m_ref rate)."""
+
+    use_mag: float
+    max_dt: float
+    gyro_noise: float
+    gyro_drift_noise: float
+    acc_noise: float
+    linacc_noise: float
+    linacc_decay: float
+    mag_noise: float
+    mag_disturbance_noise: float
+    mag_disturbance_decay: float
+    expected_mag_strength: float
+    gravity: float
+    mag_ref_rate: float
+
+
 @njit(cache=True, inline="always")
 def _scalar_update(P, x, ph, hs, kap, u, z, r, n):
     """One scalar Kalman update with the measurement row h = [hs, −κ hs, e_u] (hs: the row of
@@ -132,10 +168,11 @@ def _scalar_update(P, x, ph, hs, kap, u, z, r, n):
 @njit(cache=True)
 def ekf_step(state, params, gyr, acc, mag, dt, diag):
     """One sample. diag: [acc used, mag used, b̂x, b̂y, b̂z, ‖â‖, orientation std (deg), mag jammed]."""
-    use_mag, max_dt = params[0] > 0.5, params[1]
-    eta, beta, lam, xi, nu, mu, gam, sig, m_exp, grav = (params[2], params[3], params[4], params[5], params[6],
-                                                          params[7], params[8], params[9], params[10], params[11])
-    mref_rate = params[12]
+    use_mag, max_dt = params.use_mag > 0.5, params.max_dt
+    eta, beta, lam = params.gyro_noise, params.gyro_drift_noise, params.acc_noise
+    xi, nu = params.linacc_noise, params.linacc_decay
+    mu, gam, sig = params.mag_noise, params.mag_disturbance_noise, params.mag_disturbance_decay
+    m_exp, grav, mref_rate = params.expected_mag_strength, params.gravity, params.mag_ref_rate
     nx = NX if use_mag else 9  # 6D: the magnetic-disturbance block takes no part
     acc_ok = vector_ok(acc)
     mag_ok = use_mag and vector_ok(mag)
@@ -159,7 +196,9 @@ def ekf_step(state, params, gyr, acc, mag, dt, diag):
         scratch[i] = 0.0  # x
     bx, by, bz = state[_OFF_B], state[_OFF_B + 1], state[_OFF_B + 2]
     q_prev = load_quat(state)
-    q, done = propagate_gyro(q_prev, (gyr[0] - bx, gyr[1] - by, gyr[2] - bz), dt, max_dt)
+    q, done = q_prev, False
+    if gyro_valid(gyr):  # the saturation test is on the raw reading, not on ω − b̂ (filters.base)
+        q, done = propagate_gyro(q_prev, (gyr[0] - bx, gyr[1] - by, gyr[2] - bz), dt, max_dt)
     kap = dt if done else 0.0
     if done:
         # body-frame error: δθ_k = Φ δθ_{k-1} − κ δb with Φ = R(Δq)ᵀ, Δq = q⁻_{k-1}* ⊗ q⁻_k. MATLAB's
@@ -255,6 +294,7 @@ class EKFFilter(OrientationFilter):
 
     name = "ekf"
     Settings = EKFSettings
+    Coefficients = EKFCoefficients
     state_names = (("bias_x", "bias_y", "bias_z", "linacc_x", "linacc_y", "linacc_z",
                      "magdist_x", "magdist_y", "magdist_z", "mag_ref_h", "mag_ref_v")
                     + tuple(f"P_{i}_{j}" for i in range(NX) for j in range(NX)))
@@ -262,8 +302,6 @@ class EKFFilter(OrientationFilter):
                         "mag_jammed")
     step = ekf_step
 
-    def _coefficients(self) -> np.ndarray:
+    def _coefficients(self) -> dict:
         s = self.settings
-        return np.array([s.gyro_noise, s.gyro_drift_noise, s.acc_noise, s.linacc_noise, s.linacc_decay, s.mag_noise,
-                         s.mag_disturbance_noise, s.mag_disturbance_decay, s.expected_mag_strength, s.gravity,
-                         s.mag_ref_rate])
+        return {f: getattr(s, f) for f in EKFCoefficients._fields[2:]}

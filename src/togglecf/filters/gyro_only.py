@@ -7,11 +7,19 @@ The orientation is initialised once from the first valid acc(/mag) sample (headi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, initialize_from_sample, load_quat, propagate_gyro, store_quat, vector_ok
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    initialize_from_sample,
+    load_quat,
+    propagate_gyro,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["GyroOnlyFilter", "GyroSettings"]
 
@@ -21,10 +29,17 @@ class GyroSettings(FilterSettings):
     """No parameters besides ``max_dt`` (see ``FilterSettings``)."""
 
 
+class GyroCoefficients(NamedTuple):
+    """``params`` of ``gyro_step``: only the common ``use_mag``, ``max_dt`` (see ``filters.base``)."""
+
+    use_mag: float
+    max_dt: float
+
+
 @njit(cache=True)
 def gyro_step(state, params, gyr, acc, mag, dt, diag):
     """One sample. diag: [1.0 if the gyro sample was integrated]."""
-    use_mag, max_dt = params[0] > 0.5, params[1]
+    use_mag, max_dt = params.use_mag > 0.5, params.max_dt
     diag[0] = 0.0
     if state[4] < 0.5:
         initialize_from_sample(state, acc, mag, use_mag and vector_ok(mag))
@@ -39,8 +54,9 @@ class GyroOnlyFilter(OrientationFilter):
 
     name = "gyro"
     Settings = GyroSettings
+    Coefficients = GyroCoefficients
     diagnostic_names = ("gyro_integrated",)
     step = gyro_step
 
-    def _coefficients(self) -> np.ndarray:
-        return np.zeros(0)
+    def _coefficients(self) -> dict:
+        return {}

@@ -22,20 +22,30 @@ as long as eq. 46's (github.com/dlaidig/broad issue 1); BROAD's published Madgwi
 come from that code. ``c_code_mag_step=True`` reproduces it for comparison; the default
 is the report.
 
-Bad samples: invalid Δt -> the sample is skipped (nothing can be integrated); non-finite
-gyro -> ω = 0 (the correction still runs); invalid acc -> no correction; invalid mag in
-9D -> the IMU equations for that sample.
+Bad samples (``filters.base``): invalid Δt -> the sample is skipped (nothing can be
+integrated); non-finite or saturated gyro (an axis at or beyond ``GYRO_FULL_SCALE``) -> ω = 0
+(the correction still runs); invalid acc -> no correction; invalid mag in 9D -> the IMU
+equations for that sample.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, initialize_from_sample, load_quat, store_quat, vector_ok
-from ..quaternion import ENU_FROM_NWU, multiply_scalar, normalize_scalar, rotate_scalar
+from togglecf.core.quaternion import ENU_FROM_NWU, multiply_scalar, normalize_scalar, rotate_scalar
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    dt_valid,
+    gyro_valid,
+    initialize_from_sample,
+    load_quat,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["MadgwickFilter", "MadgwickSettings"]
 
@@ -64,11 +74,26 @@ class MadgwickSettings(FilterSettings):
             raise ValueError(f"beta must be >= 0, got {self.beta}")
 
 
+class MadgwickCoefficients(NamedTuple):
+    """``params`` of ``madgwick_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+
+    Attributes:
+        beta: gradient-descent gain β [rad/s] (``MadgwickSettings.beta``).
+        mag_ref_scale: factor on the magnetic reference b of eq. 46: 1.0 (the report) or 0.5
+            (MadgwickAHRS.c, ``c_code_mag_step=True``).
+    """
+
+    use_mag: float
+    max_dt: float
+    beta: float
+    mag_ref_scale: float
+
+
 @njit(cache=True)
 def madgwick_step(state, params, gyr, acc, mag, dt, diag):
     """One sample (see module docstring). diag: [β·Δt applied (0 without correction), mag used,
     ‖∇f‖ before normalisation]."""
-    use_mag, max_dt, beta, bscale = params[0] > 0.5, params[1], params[2], params[3]
+    use_mag, max_dt, beta, bscale = params.use_mag > 0.5, params.max_dt, params.beta, params.mag_ref_scale
     acc_ok = vector_ok(acc)
     mag_ok = use_mag and vector_ok(mag)
     diag[0] = 0.0
@@ -77,13 +102,13 @@ def madgwick_step(state, params, gyr, acc, mag, dt, diag):
     if state[4] < 0.5:
         initialize_from_sample(state, acc, mag, mag_ok)
         return
-    if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
+    if not dt_valid(dt, max_dt):
         return
     # boundary: ENU state -> NWU (the report's frame)
     qe = load_quat(state)
     q0, q1, q2, q3 = multiply_scalar((_CW, 0.0, 0.0, -_CZ), qe)
     gx, gy, gz = gyr[0], gyr[1], gyr[2]
-    if not (math.isfinite(gx) and math.isfinite(gy) and math.isfinite(gz)):
+    if not gyro_valid(gyr):  # non-finite or saturated: no gyro propagation (filters.base)
         gx, gy, gz = 0.0, 0.0, 0.0
     # eq. 12: q̇_ω = ½ q ⊗ [0, ω]
     d0 = 0.5 * (-q1 * gx - q2 * gy - q3 * gz)
@@ -138,8 +163,9 @@ class MadgwickFilter(OrientationFilter):
 
     name = "madgwick"
     Settings = MadgwickSettings
+    Coefficients = MadgwickCoefficients
     diagnostic_names = ("beta_dt", "mag_used", "grad_norm")
     step = madgwick_step
 
-    def _coefficients(self) -> np.ndarray:
-        return np.array([self.settings.beta, 0.5 if self.settings.c_code_mag_step else 1.0])
+    def _coefficients(self) -> dict:
+        return {"beta": self.settings.beta, "mag_ref_scale": 0.5 if self.settings.c_code_mag_step else 1.0}

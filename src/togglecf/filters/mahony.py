@@ -17,19 +17,29 @@ about the vertical, so no frame conversion is needed here and the state stays EN
 Differences from ``ahrs.filters.Mahony`` (only for invalid samples): we subtract b̂ from ω
 also when the accelerometer is invalid (ahrs then uses the raw gyro), and a sample with
 ω exactly zero is integrated normally (ahrs returns q unchanged and freezes b̂).
-Bad samples: invalid Δt -> skipped; non-finite gyro -> ω_y = b̂ (only the correction acts);
-invalid acc -> no correction, b̂ held; invalid mag in 9D -> gravity term only.
+Bad samples (``filters.base``): invalid Δt -> skipped; non-finite or saturated gyro (an axis at
+or beyond ``GYRO_FULL_SCALE``) -> ω_y = b̂ (only the correction acts); invalid acc -> no
+correction, b̂ held; invalid mag in 9D -> gravity term only.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
-import numpy as np
 from numba import njit
 
-from .base import FilterSettings, OrientationFilter, initialize_from_sample, load_quat, store_quat, vector_ok
-from ..quaternion import normalize_scalar, rotate_inverse_scalar, rotate_scalar
+from togglecf.core.quaternion import normalize_scalar, rotate_inverse_scalar, rotate_scalar
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    dt_valid,
+    gyro_valid,
+    initialize_from_sample,
+    load_quat,
+    store_quat,
+    vector_ok,
+)
 
 __all__ = ["MahonyFilter", "MahonySettings"]
 
@@ -56,10 +66,20 @@ class MahonySettings(FilterSettings):
             raise ValueError(f"Kp and Ki must be >= 0, got {self.Kp}, {self.Ki}")
 
 
+class MahonyCoefficients(NamedTuple):
+    """``params`` of ``mahony_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+    the proportional gain ``Kp`` [rad/s] and the integral gain ``Ki`` [rad/s²] (``MahonySettings``)."""
+
+    use_mag: float
+    max_dt: float
+    Kp: float
+    Ki: float
+
+
 @njit(cache=True)
 def mahony_step(state, params, gyr, acc, mag, dt, diag):
     """One sample. state[5:8] is b̂. diag: [correction applied, mag used, b̂x, b̂y, b̂z, ‖ω_mes‖]."""
-    use_mag, max_dt, kp, ki = params[0] > 0.5, params[1], params[2], params[3]
+    use_mag, max_dt, kp, ki = params.use_mag > 0.5, params.max_dt, params.Kp, params.Ki
     acc_ok = vector_ok(acc)
     mag_ok = use_mag and vector_ok(mag)
     diag[0] = 0.0
@@ -69,12 +89,12 @@ def mahony_step(state, params, gyr, acc, mag, dt, diag):
         initialize_from_sample(state, acc, mag, mag_ok)
         diag[2], diag[3], diag[4] = state[5], state[6], state[7]
         return
-    if not (math.isfinite(dt) and dt > 0.0 and dt <= max_dt):
+    if not dt_valid(dt, max_dt):
         diag[2], diag[3], diag[4] = state[5], state[6], state[7]
         return
     q = load_quat(state)
     gx, gy, gz = gyr[0], gyr[1], gyr[2]
-    if not (math.isfinite(gx) and math.isfinite(gy) and math.isfinite(gz)):
+    if not gyro_valid(gyr):  # non-finite or saturated: no gyro propagation (filters.base)
         gx, gy, gz = state[5], state[6], state[7]  # ω_y − b̂ = 0
     ex, ey, ez = 0.0, 0.0, 0.0
     if acc_ok:
@@ -118,9 +138,10 @@ class MahonyFilter(OrientationFilter):
 
     name = "mahony"
     Settings = MahonySettings
+    Coefficients = MahonyCoefficients
     state_names = ("bias_x", "bias_y", "bias_z")
     diagnostic_names = ("corrected", "mag_used", "bias_x", "bias_y", "bias_z", "omega_mes_norm")
     step = mahony_step
 
-    def _coefficients(self) -> np.ndarray:
-        return np.array([self.settings.Kp, self.settings.Ki])
+    def _coefficients(self) -> dict:
+        return {"Kp": self.settings.Kp, "Ki": self.settings.Ki}

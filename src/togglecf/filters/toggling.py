@@ -31,15 +31,32 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from .base import (GYRO_FULL_SCALE, FilterSettings, OrientationFilter, acc_mag_quaternion, gyro_increment, load_quat,
-                   store_quat, vector_ok)
-from ..quaternion import multiply_scalar, normalize_scalar, rotate_inverse_scalar
+from togglecf.core.quaternion import multiply_scalar, normalize_scalar, rotate_inverse_scalar
+from togglecf.filters.base import (
+    FilterOutput,
+    FilterSettings,
+    OrientationFilter,
+    acc_mag_quaternion,
+    gyro_increment,
+    gyro_valid,
+    load_quat,
+    store_quat,
+    vector_ok,
+)
 
-__all__ = ["TogglingFilter", "TogglingSettings", "toggle_step", "N_PRED_NOISE"]
+__all__ = [
+    "N_PRED_NOISE",
+    "TogglingCoefficients",
+    "TogglingFilter",
+    "TogglingSettings",
+    "run_batch_predicted",
+    "toggle_step",
+]
 
 N_PRED_NOISE = 6  # η̂_a (3) then η̂_m (3)
 _STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
@@ -95,8 +112,33 @@ class TogglingSettings(FilterSettings):
             raise ValueError("bias_gain must be in [0, 1] and bias_gate >= 0")
 
 
+class TogglingCoefficients(NamedTuple):
+    """``params`` of ``toggle_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
+
+    Attributes:
+        n_states: number of motion states S (``len(TogglingSettings.states)``).
+        alpha_acc, alpha_mag: per-state gains, float64 arrays ``(S,)``.
+        static_index: index of ``static_state`` in ``states`` (its probability drives the bias).
+        gamma, bias_gain, bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag:
+            the ``TogglingSettings`` of the same names.
+    """
+
+    use_mag: float
+    max_dt: float
+    n_states: int
+    alpha_acc: np.ndarray
+    alpha_mag: np.ndarray
+    gamma: float
+    bias_gain: float
+    static_index: int
+    bias_gate: float
+    mag_disturbance_scale: float
+    noise_weight_acc: float
+    noise_weight_mag: float
+
+
 @njit(cache=True, inline="always")
-def _gains(params, pred, ns):
+def _gains(alpha_acc, alpha_mag, pred, ns):
     """Probability-weighted gains (step 4); a non-finite probability row counts as the static
     state's gains being off: the lowest gain of each sensor is used (the cautious choice)."""
     aa = 0.0
@@ -105,14 +147,14 @@ def _gains(params, pred, ns):
     for s in range(ns):
         p = pred[s]
         if not (p >= 0.0):
-            aa = params[3]
-            am = params[3 + ns]
+            aa = alpha_acc[0]
+            am = alpha_mag[0]
             for t in range(ns):
-                aa = min(aa, params[3 + t])
-                am = min(am, params[3 + ns + t])
+                aa = min(aa, alpha_acc[t])
+                am = min(am, alpha_mag[t])
             return aa, am, 0.0
-        aa += p * params[3 + s]
-        am += p * params[3 + ns + s]
+        aa += p * alpha_acc[s]
+        am += p * alpha_mag[s]
         total += p
     if total > 0.0:
         aa /= total
@@ -123,10 +165,9 @@ def _gains(params, pred, ns):
 @njit(cache=True)
 def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm]."""
-    use_mag, max_dt, ns = params[0] > 0.5, params[1], int(params[2])
-    o = 3 + 2 * ns
-    gamma, bias_gain, static_idx, bias_gate = params[o], params[o + 1], int(params[o + 2]), params[o + 3]
-    mag_scale, w_a, w_m = params[o + 4], params[o + 5], params[o + 6]
+    use_mag, max_dt, ns = params.use_mag > 0.5, params.max_dt, params.n_states
+    gamma, bias_gain, static_idx, bias_gate = params.gamma, params.bias_gain, params.static_index, params.bias_gate
+    mag_scale, w_a, w_m = params.mag_disturbance_scale, params.noise_weight_acc, params.noise_weight_mag
     eta_ok = True
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
@@ -139,7 +180,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
         m_d = (mag[0], mag[1], mag[2])
     acc_ok = vector_ok(a_d)
     mag_ok = use_mag and vector_ok(m_d)
-    alpha_a, alpha_m, _ = _gains(params, pred, ns)
+    alpha_a, alpha_m, _ = _gains(params.alpha_acc, params.alpha_mag, pred, ns)
     if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted
         e2 = pred[ns + 3] * pred[ns + 3] + pred[ns + 4] * pred[ns + 4] + pred[ns + 5] * pred[ns + 5]
         alpha_m = alpha_m / (1.0 + e2 / (mag_scale * mag_scale))
@@ -160,7 +201,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     b = (state[5], state[6], state[7])
     a_pred = (state[8], state[9], state[10])
     m_pred = (state[11], state[12], state[13])
-    g_ok = abs(gyr[0]) < GYRO_FULL_SCALE and abs(gyr[1]) < GYRO_FULL_SCALE and abs(gyr[2]) < GYRO_FULL_SCALE
+    g_ok = gyro_valid(gyr)  # the raw reading, before the bias correction (filters.base)
     if g_ok and bias_gain > 0.0 and p_static > 0.0:  # step 1
         rx, ry, rz = gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2]
         if rx * rx + ry * ry + rz * rz < bias_gate * bias_gate:
@@ -212,14 +253,16 @@ class TogglingFilter(OrientationFilter):
 
     name = "toggling"
     Settings = TogglingSettings
+    Coefficients = TogglingCoefficients
     state_names = _STATE
     diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm")
 
-    def _coefficients(self) -> np.ndarray:
+    def _coefficients(self) -> dict:
         s = self.settings
-        return np.array([len(s.states), *s.alpha_acc, *s.alpha_mag, s.gamma, s.bias_gain,
-                         s.states.index(s.static_state), s.bias_gate, s.mag_disturbance_scale,
-                         s.noise_weight_acc, s.noise_weight_mag], dtype=np.float64)
+        return {"n_states": len(s.states), "alpha_acc": np.array(s.alpha_acc), "alpha_mag": np.array(s.alpha_mag),
+                "gamma": s.gamma, "bias_gain": s.bias_gain, "static_index": s.states.index(s.static_state),
+                "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
+                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
 
     @property
     def n_predictions(self) -> int:
@@ -240,8 +283,6 @@ class TogglingFilter(OrientationFilter):
         return self.quat
 
     def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
-        from .base import FilterOutput
-
         g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
         n = g.shape[0]
         pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
@@ -253,221 +294,3 @@ class TogglingFilter(OrientationFilter):
         if n:
             self._diag[:] = diag_out[-1]
         return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})
-
-
-# ------------------------------------------------------------------------------------------------
-# Models inside the loop: features pushed every sample, trees evaluated every hop, all compiled.
-# ------------------------------------------------------------------------------------------------
-
-from ..streaming_features import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features  # noqa: E402
-from ..trees import FlatForest, predict_margin_row, softmax  # noqa: E402
-
-
-class CompiledModels:
-    """A trained model bundle as one flat forest: outputs = class margins (softmax applied in the
-    loop), then η̂_a x/y/z, then η̂_m x/y/z; plus the feature settings it was trained with."""
-
-    def __init__(self, forest: FlatForest, class_names, feature_settings, schema_hash: str):
-        self.forest = forest
-        self.class_names = tuple(class_names)
-        self.feature_settings = feature_settings
-        self.schema_hash = schema_hash
-        # the class in which the gyro bias is learned: the model's rest class
-        self.static_state = next((c for c in ("rest", "static") if c in self.class_names), self.class_names[0])
-        if forest.n_outputs != len(self.class_names) + N_PRED_NOISE:
-            raise ValueError(f"forest has {forest.n_outputs} outputs, expected {len(self.class_names)} classes + 6")
-
-    @classmethod
-    def from_bundle(cls, bundle) -> "CompiledModels":
-        from ..features import FeatureSettings, feature_schema
-
-        settings = FeatureSettings.from_dict({k: v for k, v in bundle.schema.settings.items() if k != "gravity"})
-        feature_schema(settings).check(bundle.schema, "streaming features")  # same definitions as training
-        forests = [FlatForest.from_booster(bundle.classifier.booster_)]
-        for target in ("acc", "mag"):
-            forests += [FlatForest.from_booster(b) for b in bundle.regressors[target].boosters_]
-        return cls(FlatForest.concatenate(forests), bundle.classifier.class_names_, settings, bundle.schema.hash)
-
-    def predict_samples(self, gyr, acc, mag, fs: float) -> np.ndarray:
-        """Per-sample predictions ``(N, S + 6)`` as the in-loop filter holds them: from the
-        vectorised features at each window end, held until the next one; NaN before the
-        first full window. For learning gains on whole trials without re-running the trees."""
-        from ..features import compute_features
-
-        n = np.shape(gyr)[0]
-        if n < window_length_samples(fs, self.feature_settings):
-            return np.full((n, self.forest.n_outputs), np.nan)
-        X, ends = compute_features(gyr, acc, mag, fs, self.feature_settings)
-        return hold_predictions(ends, self.predict_windows(X), n)
-
-    def predict_windows(self, X) -> np.ndarray:
-        """Prediction rows ``(n, S + 6)`` (class probabilities, η̂_a, η̂_m) of feature rows ``X``."""
-        m = self.forest.predict_margin(X)
-        k = len(self.class_names)
-        m[:, :k] = softmax(m[:, :k])
-        return m
-
-
-def hold_predictions(ends, values, n: int) -> np.ndarray:
-    """Per-sample predictions ``(n, k)``: the row of the last window end ``<= sample`` (as the
-    in-loop filter holds them between hops); NaN before the first window end."""
-    ends = np.asarray(ends)
-    order = np.argsort(ends, kind="stable")
-    ends, values = ends[order], np.asarray(values)[order]
-    pred = np.full((n, values.shape[1]), np.nan)
-    idx = np.searchsorted(ends, np.arange(n), side="right") - 1
-    pred[idx >= 0] = values[idx[idx >= 0]]
-    return pred
-
-
-def window_length_samples(fs, feature_settings) -> int:
-    from ..features import window_length
-
-    return window_length(fs, feature_settings.window_s)
-
-
-@njit(cache=True)
-def inloop_step(state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
-                feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                feat, margin, pred):
-    """One sample with the models in the loop: push features; at a window end (every ``hop``
-    samples once the window is full) evaluate the trees into ``pred`` (held until the next
-    hop); then the toggling step."""
-    push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
-    L = ring.shape[0]
-    count = int(aux[0])
-    if count >= L and (count - L) % hop == 0:
-        window_features(ring, aux, feat)
-        predict_margin_row(feat, feature, threshold, left, right, default_left, value, roots, tree_group,
-                           base_margin, margin)
-        mx = margin[0]
-        for s in range(1, n_classes):
-            mx = max(mx, margin[s])
-        tot = 0.0
-        for s in range(n_classes):
-            pred[s] = math.exp(margin[s] - mx)  # softmax of the class margins
-            tot += pred[s]
-        for s in range(n_classes):
-            pred[s] /= tot
-        for j in range(N_PRED_NOISE):
-            pred[n_classes + j] = margin[n_classes + j]
-    toggle_step(state, params, gyr, acc, mag, dt, pred, diag)
-
-
-@njit(cache=True)
-def inloop_batch(state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
-                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                 feat, margin, pred, quat_out, diag_out, pred_out):
-    for i in range(gyr.shape[0]):
-        inloop_step(state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
-                    n_classes, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                    feat, margin, pred)
-        quat_out[i, 0] = state[0]
-        quat_out[i, 1] = state[1]
-        quat_out[i, 2] = state[2]
-        quat_out[i, 3] = state[3]
-        pred_out[i] = pred
-
-
-class ModelTogglingFilter(TogglingFilter):
-    """The toggling CF with its models in the compiled loop: ``ModelTogglingFilter(fs,
-    models=CompiledModels.from_bundle(load_bundle(dir)), alpha_acc=..., ...)``.
-
-    ``update``/``update_batch`` take only IMU samples; the diagnostics add the predictions
-    (``p_<state>``, ``eta_acc_x`` ...). The full state (filter + feature window + held
-    prediction) is saved and restored by ``get_state``/``set_state``.
-    """
-
-    def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
-        if settings is None:
-            overrides.setdefault("states", models.class_names)
-            overrides.setdefault("static_state", models.static_state)
-        super().__init__(fs, settings, use_mag=use_mag, **overrides)
-        if tuple(self.settings.states) != models.class_names:
-            raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
-        self.models = models
-        k = len(models.class_names)
-        s = self.settings
-        # η̂_m enters step 3 (weight w_m) and step 4 (σ_m > 0), and only in 9D
-        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
-        unused = [k + j for j in range(3) if s.noise_weight_acc == 0.0] + [k + 3 + j for j in range(3) if not mag_needed]
-        # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
-        self.forest = models.forest.without_outputs(unused) if unused else models.forest
-        self._features = StreamingFeatures(self.fs, models.feature_settings)
-        from ..features import hop_length
-        self.hop = hop_length(self.fs, models.feature_settings.hop_s)
-        self._reset_model_state()
-
-    def _reset_model_state(self):
-        self._features.ring[:] = 0.0
-        self._features.aux[:] = 0.0
-        self.pred = np.full(self.n_predictions, np.nan)  # no prediction before the first full window
-        self._feat = np.empty(N_FEATURES)
-        self._margin = np.empty(self.n_predictions)
-
-    def reset(self):
-        super().reset()
-        if hasattr(self, "models"):
-            self._reset_model_state()
-
-    def get_state(self) -> np.ndarray:
-        return np.concatenate([self.state, self._features.aux, self._features.ring.ravel(), self.pred])
-
-    def set_state(self, state):
-        state = np.asarray(state, np.float64)
-        sizes = [self.state.size, N_AUX, self._features.ring.size, self.pred.size]
-        if state.shape != (sum(sizes),):
-            raise ValueError(f"{type(self).__name__}: state must have shape ({sum(sizes)},), got {state.shape}")
-        a, b, c = np.cumsum(sizes)[:3]
-        self.state[:] = state[:a]
-        self._features.aux[:] = state[a:b]
-        self._features.ring[:] = state[b:c].reshape(self._features.ring.shape)
-        self.pred[:] = state[c:]
-
-    def _model_args(self):
-        return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
-                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred)
-
-    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
-        if prediction is not None:
-            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
-        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
-                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
-        inloop_step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
-        return self.quat
-
-    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
-        from .base import FilterOutput
-
-        if predictions is not None:
-            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
-        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
-        n = g.shape[0]
-        quat_out = np.empty((n, 4))
-        diag_out = np.zeros((n, len(self.diagnostic_names)))
-        pred_out = np.empty((n, self.n_predictions))
-        inloop_batch(self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out, pred_out)
-        if n:
-            self._diag[:] = diag_out[-1]
-        diags = {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)}
-        names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
-        diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
-        return FilterOutput(quat_out, diags)
-
-
-_COMPILED_CACHE: dict = {}
-
-
-def load_toggling_filter(model_dir, fs: float, use_mag: bool = True) -> ModelTogglingFilter:
-    """The trained toggling filter of a model directory (``togglecf train`` output): the
-    models (schema-checked, hash-verified) compiled for the loop, with the learned gains."""
-    from pathlib import Path
-
-    from ..gains import load_gains
-    from ..models import load_bundle
-
-    key = str(Path(model_dir).resolve())
-    if key not in _COMPILED_CACHE:  # flattening the trees takes ~1 s: once per process
-        _COMPILED_CACHE[key] = CompiledModels.from_bundle(load_bundle(model_dir))
-    models = _COMPILED_CACHE[key]
-    return ModelTogglingFilter(fs, load_gains(model_dir, use_mag=use_mag), models=models, use_mag=use_mag)

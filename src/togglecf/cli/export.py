@@ -1,0 +1,155 @@
+"""``togglecf export``: a model directory as C (TL2cgen and/or compact arrays, checked against the
+Python models) and the whole toggling filter in C; ``--max-bytes`` picks a pruned point first."""
+from __future__ import annotations
+
+import shutil
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+from togglecf.cli.prune import add_sweep_arguments, sweep_from_args
+from togglecf.core.io import atomic_write_json
+from togglecf.embedded.cfilter import export_c_filter
+from togglecf.embedded.forest_export import (
+    ARRAY_LINK_MAIN,
+    TOLERANCE,
+    export_array_c,
+    export_tl2cgen,
+    model_sizes,
+    tl2cgen_link_main,
+    window_features_of_trials,
+)
+from togglecf.embedded.toolchain import RISCV_GCC, link_riscv
+from togglecf.learn.models import load_bundle
+from togglecf.run.config import load_config
+from togglecf.run.prune import PrunePoint, choose_point, format_front, size_key, write_sweep_report
+from togglecf.run.train import run_training
+
+__all__ = ["add_export_parser", "cmd_export", "train_within_budget"]
+
+
+def add_export_parser(subparsers):
+    """``togglecf export``: register on the CLI's subparsers (sets ``func``)."""
+    sp = subparsers.add_parser("export", help="export a model directory as C code (TL2cgen or compact arrays), "
+                               "checked against the Python models, with object sizes")
+    sp.add_argument("--models", required=True, metavar="DIR", help="a `togglecf train` model directory")
+    sp.add_argument("--out", required=True, metavar="DIR", help="output directory, e.g. build/embedded/NAME")
+    sp.add_argument("--format", choices=("tl2cgen", "array", "both"), default="both")
+    sp.add_argument("--quantize", action="store_true", help="TL2cgen: quantized thresholds (integer compares)")
+    sp.add_argument("--data", metavar="DIR", help="BROAD directory for the equivalence check")
+    sp.add_argument("--trials", metavar="LIST", default="all",
+                    help="trials whose windows are checked (default: all present)")
+    sp.add_argument("--no-check", action="store_true", help="skip the equivalence check (no data needed)")
+    sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
+    sp.add_argument("--6d", dest="six_d", action="store_true",
+                    help="C filter without magnetometer (6D gains from gains.json)")
+    sp.add_argument("--max-bytes", type=int, metavar="N",
+                    help="flash budget: run (or resume) the pruning sweep of --models in OUT/sweep, pick the point "
+                    "with the lowest held-out error whose RISC-V object code (array format; tl2cgen with "
+                    "--format tl2cgen) fits in N bytes, train it on the model's training trials into OUT/models "
+                    "and export that")
+    sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
+    add_sweep_arguments(sp)
+    sp.set_defaults(func=cmd_export)
+    return sp
+
+
+def train_within_budget(args) -> tuple:
+    """``--max-bytes``: the sweep's best point within the budget, trained on the model's own
+    training trials (gains on out-of-fold predictions, as ``togglecf train``). Returns the new
+    model directory and a report of the choice (the point's held-out errors and the reference's)."""
+    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
+    key = size_key("tl2cgen" if args.format == "tl2cgen" else "array", riscv)
+    sweep_dir = Path(args.sweep or Path(args.out) / "sweep")
+    rows = sweep_from_args(args, sweep_dir)
+    write_sweep_report(rows, sweep_dir, key, args.max_bytes)
+    print(format_front(rows, key))
+    best = choose_point(rows, args.max_bytes, key)
+    ref = next(r for r in rows if r["reference"])
+    print(f"chosen for {args.max_bytes} bytes: {best['key']} ({best[key]} bytes in the sweep, held-out mean total "
+          f"{best['mean_total']:.3f}° vs {ref['mean_total']:.3f}° unpruned)", file=sys.stderr)
+    bundle = load_bundle(args.models)
+    point = PrunePoint(**{f.name: best[f.name] for f in fields(PrunePoint) if f.name != "reference"})
+    cfg = point.apply(load_config(bundle.metadata["config"]))
+    cfg["run"]["name"] = f"{cfg['run']['name']}-{point.key}"
+    model_dir = Path(args.out) / "models"
+    run_training(cfg, data_dir=args.data, trials=",".join(bundle.metadata["training_trials"]), out=model_dir,
+                 cv=True, verbose=True)
+    choice = {"max_bytes": args.max_bytes, "size_key": key, "sweep_dir": str(sweep_dir), "point": best,
+              "reference": ref, "source_models": str(args.models), "models": str(model_dir)}
+    return model_dir, choice
+
+
+def _fmt_size(v):
+    return "-" if v is None else f"{v / 1024:.1f} KiB"
+
+
+def cmd_export(args) -> int:
+    choice = None
+    if args.max_bytes is not None:
+        args.models, choice = train_within_budget(args)
+    X = None
+    if not args.no_check:
+        X = window_features_of_trials(load_bundle(args.models), args.trials, args.data)
+        print(f"equivalence check on {len(X)} windows", file=sys.stderr)
+    reports = {}
+    formats = ("tl2cgen", "array") if args.format == "both" else (args.format,)
+    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
+    ok = True
+    for fmt in formats:
+        if fmt == "tl2cgen":
+            rep = export_tl2cgen(args.models, args.out, quantize=args.quantize, X=X)
+            model_sizes(rep, "firmware", riscv=riscv)
+            if riscv:
+                n_feat = len(load_bundle(args.models).schema.names)
+                rep["linked_riscv"] = link_riscv([f for e in rep["models"].values() for f in e["firmware"]],
+                                                 [rep["firmware_dir"]],
+                                                 tl2cgen_link_main([f"tcf_{n}_" for n in rep["models"]], n_feat, 16))
+        else:
+            rep = export_array_c(args.models, args.out, X=X)
+            model_sizes(rep, "source", riscv=riscv)
+            if riscv:
+                e = rep["models"]["forest"]
+                rep["linked_riscv"] = link_riscv([e["source"]], [Path(e["source"]).parent], ARRAY_LINK_MAIN)
+        reports[fmt] = rep
+        title = fmt + (" (quantized)" if fmt == "tl2cgen" and args.quantize else "")
+        print(f"{title}: object size (gcc -Os)   host        rv32imc     max|diff|")
+        for name, e in rep["models"].items():
+            d = e.get("max_abs_diff")
+            d = "-" if d is None else f"{max(d.values()) if isinstance(d, dict) else d:.2e}"
+            print(f"  {name:<12} {_fmt_size(e['size']['host']):>22} {_fmt_size(e['size']['riscv']):>11}   {d}")
+        if rep.get("linked_riscv"):
+            what = "all 7 models" if fmt == "tl2cgen" else "merged forest + softmax"
+            print(f"  linked rv32imc picolibc program ({what}, soft-float, -Os): "
+                  f"{rep['linked_riscv']['flash'] / 1024:.1f} KiB flash")
+        if "ok" in rep:
+            print(f"  equivalence (≤ {TOLERANCE:g}) on {rep['n_rows_checked']} windows: "
+                  f"{'OK' if rep['ok'] else 'FAILED'} (max {rep['max_abs_diff']:.2e})")
+            ok &= rep["ok"]
+    filter_dir = Path(args.out) / "filter"
+    if (Path(args.models) / "gains.json").is_file():
+        fs = float(load_bundle(args.models).metadata["sampling_rate"])
+        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
+        forest_size = rep["object_sizes"]["tcf_forest.c"]
+        rep["forest_bytes"] = forest_size
+        reports["filter"] = rep
+        linked = rep.get("linked_riscv")
+        print(f"C filter ({'6D' if args.six_d else '9D'}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+              f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
+              f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
+              + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
+        if choice is not None:  # the budget holds for what ships: the filter's trees
+            got = (forest_size["riscv"] or forest_size["host"])["total"]
+            choice["filter_forest_bytes"] = got
+            if got > args.max_bytes:
+                print(f"error: the final models' trees take {got} bytes, over the budget of {args.max_bytes} "
+                      "(the sweep measured the folds' models): choose a smaller --max-bytes", file=sys.stderr)
+                ok = False
+    else:
+        print(f"(no C filter: {Path(args.models) / 'gains.json'} is missing; `togglecf train` learns the gains)")
+    if not riscv:
+        print(f"(no RISC-V sizes: {RISCV_GCC} not installed or --no-riscv)")
+    if choice is not None:
+        reports["pruning"] = choice
+    atomic_write_json(Path(args.out) / "export_report.json", reports)
+    return 0 if ok else 1

@@ -1,0 +1,184 @@
+"""The features of ``togglecf.features.windows``, computed one sample at a time inside numba loops.
+
+``features.compute_features`` is the definition (and the vectorised version used for
+training); this module keeps a ring buffer of the per-sample channels of the last ``L``
+samples plus the causal EMA references, and computes the same feature row for the window
+ending at the current sample. Equal to the vectorised features up to floating-point
+rounding (mean/std are summed directly here, from shifted cumulative sums there).
+
+Layout: ``ring (L, N_RING)`` holds ``WINDOW_CHANNELS`` then ``gyr_energy`` per sample;
+``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(13)]``;
+``params`` is the named record ``FeatureCoefficients`` (fs, L, λ_ref, λ_lp, gravity). Non-finite samples do not update the EMA
+references (so one bad sample cannot poison them for the rest of a run; when the first
+samples are bad, the references start at the first finite one); their channels enter the ring
+as NaN, which the trees treat as missing values.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, feature_schema, window_length
+
+__all__ = ["N_AUX", "N_RING", "FeatureCoefficients", "StreamingFeatures", "push_sample", "window_features"]
+
+N_WINDOW = len(WINDOW_CHANNELS)
+N_RING = N_WINDOW + 1
+N_LAST = len(LAST_CHANNELS)
+N_AUX = 10 + N_LAST
+N_FEATURES = 4 * N_WINDOW + 1 + N_LAST
+# ring column of each window channel, and where each "last" channel comes from
+_RING = {c: i for i, c in enumerate(WINDOW_CHANNELS)}
+_ACC_HP = {"acc_hp_x": 0, "acc_hp_y": 1, "acc_hp_z": 2}
+assert all(c in _RING or c in _ACC_HP for c in LAST_CHANNELS), "a LAST channel is neither windowed nor acc_hp"
+_LAST_SRC = np.array([_RING[c] if c in _RING else -1 - _ACC_HP[c] for c in LAST_CHANNELS], np.int64)
+assert WINDOW_CHANNELS == ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
+                           "mag_x", "mag_y", "mag_z", "mag_norm", "jerk", "mag_norm_dev", "dip_dev"), \
+    "features.WINDOW_CHANNELS changed: update push_sample to match"
+
+
+class FeatureCoefficients(NamedTuple):
+    """``params`` of ``push_sample`` (``StreamingFeatures.params``).
+
+    Attributes:
+        fs: sampling rate [Hz] (jerk = |Δa| · fs).
+        window_length: L, samples per window (rows of the ring buffer).
+        ref_decay: λ_ref = exp(−1 / (ref_tau_s · fs)), the per-sample weight of the old value in
+            the EMA references of |m| and the dip angle.
+        lp_decay: λ_lp = exp(−1 / (lp_tau_s · fs)), the same for the acc low-pass behind acc_hp.
+        gravity: g [m/s²] (acc_norm_dev = |a| − g).
+    """
+
+    fs: float
+    window_length: int
+    ref_decay: float
+    lp_decay: float
+    gravity: float
+
+
+@njit(cache=True)
+def push_sample(ring, aux, params, last_src, gyr, acc, mag):
+    """Append one sample's channels (definitions in ``togglecf.features.windows``)."""
+    fs, L, lam_ref, lam_lp, g = params.fs, params.window_length, params.ref_decay, params.lp_decay, params.gravity
+    count = int(aux[0])
+    pos = int(aux[1])
+    gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2]
+    an = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+    mn = math.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
+    cosang = (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) if an * mn > 0.0 else 0.0
+    if not math.isfinite(cosang):
+        cosang = 0.0  # nan_to_num, as the vectorised version
+    dip = math.asin(min(1.0, max(-1.0, -cosang)))
+    if count == 0:  # EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = δ_0, p_{-1} = a_0
+        aux[2] = mn
+        aux[3] = dip
+        aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
+        aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]
+        jerk = 0.0
+    else:
+        dx, dy, dz = acc[0] - aux[7], acc[1] - aux[8], acc[2] - aux[9]
+        jerk = math.sqrt(dx * dx + dy * dy + dz * dz) * fs
+    row = ring[pos]
+    row[0], row[1], row[2] = gyr[0], gyr[1], gyr[2]
+    row[3] = math.sqrt(gn2)
+    row[4], row[5], row[6] = acc[0], acc[1], acc[2]
+    row[7] = an - g
+    row[8], row[9], row[10] = mag[0], mag[1], mag[2]
+    row[11] = mn
+    row[12] = jerk
+    row[13] = mn - aux[2]  # uses r_{k-1}
+    row[14] = dip - aux[3]
+    row[15] = gn2
+    hp0, hp1, hp2 = acc[0] - aux[4], acc[1] - aux[5], acc[2] - aux[6]
+    for j in range(last_src.shape[0]):
+        s = last_src[j]
+        aux[10 + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
+    # update the references with sample k, only from finite values; a reference that is not
+    # finite yet (the first samples were bad) starts at the first finite sample
+    if math.isfinite(mn) and math.isfinite(dip):
+        if math.isfinite(aux[2]) and math.isfinite(aux[3]):
+            aux[2] = lam_ref * aux[2] + (1.0 - lam_ref) * mn
+            aux[3] = lam_ref * aux[3] + (1.0 - lam_ref) * dip
+        else:
+            aux[2], aux[3] = mn, dip
+    if math.isfinite(an):
+        if math.isfinite(aux[4]) and math.isfinite(aux[5]) and math.isfinite(aux[6]):
+            for i in range(3):
+                aux[4 + i] = lam_lp * aux[4 + i] + (1.0 - lam_lp) * acc[i]
+        else:
+            aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
+    aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]  # jerk next to a bad sample is missing, as in features
+    aux[0] = count + 1
+    aux[1] = (pos + 1) % L
+
+
+@njit(cache=True)
+def window_features(ring, aux, out):
+    """Feature row of the window ending at the last pushed sample (needs ``L`` samples)."""
+    L = ring.shape[0]
+    nw = ring.shape[1] - 1
+    for c in range(nw):
+        s = 0.0
+        lo = ring[0, c]
+        hi = ring[0, c]
+        for i in range(L):
+            v = ring[i, c]
+            s += v
+            if v < lo:
+                lo = v
+            if v > hi:
+                hi = v
+        if not math.isfinite(s):  # a non-finite value in the window: the channel's stats are missing
+            for j in range(4):
+                out[4 * c + j] = math.nan
+            continue
+        mean = s / L
+        ss = 0.0
+        for i in range(L):
+            d = ring[i, c] - mean
+            ss += d * d
+        out[4 * c] = mean
+        out[4 * c + 1] = math.sqrt(ss / L)
+        out[4 * c + 2] = lo
+        out[4 * c + 3] = hi
+    e = 0.0
+    for i in range(L):
+        e += ring[i, nw]
+    out[4 * nw] = e / L if math.isfinite(e) else math.nan
+    n_last = aux.shape[0] - 10
+    for j in range(n_last):
+        out[4 * nw + 1 + j] = aux[10 + j]
+
+
+class StreamingFeatures:
+    """Python handle on the streaming extractor (tests, and the filter's state layout)."""
+
+    def __init__(self, fs: float, settings: FeatureSettings):
+        self.settings = settings
+        self.schema = feature_schema(settings)
+        self.L = window_length(fs, settings.window_s)
+        self.params = FeatureCoefficients(fs=float(fs), window_length=int(self.L),
+                                          ref_decay=math.exp(-1.0 / (settings.ref_tau_s * fs)),
+                                          lp_decay=math.exp(-1.0 / (settings.lp_tau_s * fs)),
+                                          gravity=float(self.schema.settings["gravity"]))
+        self.last_src = _LAST_SRC.copy()
+        self.ring = np.zeros((self.L, N_RING))
+        self.aux = np.zeros(N_AUX)
+        if len(self.schema.names) != N_FEATURES:
+            raise AssertionError("feature schema and streaming layout disagree")
+
+    def push(self, gyr, acc, mag):
+        push_sample(self.ring, self.aux, self.params, self.last_src, np.asarray(gyr, float), np.asarray(acc, float),
+                    np.asarray(mag, float))
+
+    @property
+    def ready(self) -> bool:
+        return self.aux[0] >= self.L
+
+    def features(self) -> np.ndarray:
+        out = np.empty(N_FEATURES)
+        window_features(self.ring, self.aux, out)
+        return out

@@ -1,0 +1,212 @@
+"""Orientation plots for one trial: Euler angles over time, 3-D key frames, 3-D animation.
+
+Every function returns the matplotlib ``Figure`` and, given ``out``/``path``, saves it (format
+from the suffix: ``.png``, ``.svg``, ...; animations ``.mp4`` with ffmpeg, else ``.gif``).
+The module leaves the backend alone (inline in a notebook); the ``togglecf plot`` commands switch
+to Agg, which renders without a display (matplotlib also falls back to it on a headless
+machine). Quaternions are ``[w, x, y, z]``, sensor -> ENU (``togglecf.core.quaternion``); Euler angles are ZYX roll/pitch/yaw in degrees.
+
+Command line (``add_plot_parser``)::
+
+    togglecf plot euler --trial 05 [--filters madgwick,cf] [--models DIR] [--data DIR] --out euler.png
+    togglecf plot 3d --trial 05 --filter madgwick [--models DIR] --out anim.gif|anim.mp4|frames.png
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+from togglecf.core import quaternion as quat
+
+TRUTH_COLOR = "black"
+#: estimate colours, in order (truth is black); fixed so images can be checked
+EST_COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#7f7f7f")
+AXIS_COLORS = ("#e41a1c", "#4daf4a", "#377eb8")  # sensor x, y, z
+EULER_NAMES = ("roll", "pitch", "yaw")
+
+# IMU box half-extents (a flat board, x longest) and its 8 corners / 6 faces
+_HALF = np.array([0.5, 0.3, 0.1])
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * _HALF
+_FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
+_OFFSET = 0.9  # estimate drawn at -x, truth at +x (east)
+
+
+def _save(fig, out):
+    if out is not None:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=fig.dpi)
+    return fig
+
+
+def euler_deg(q) -> np.ndarray:
+    """Roll, pitch, yaw [deg] ``(N, 3)``; NaN rows (missing truth) stay NaN."""
+    q = np.asarray(q, float)
+    out = np.full(q.shape[:-1] + (3,), np.nan)
+    ok = np.all(np.isfinite(q), axis=-1)
+    out[ok] = np.degrees(quat.to_euler_zyx(q[ok]))
+    return out
+
+
+def _break_wraps(y, limit=180.0):
+    """NaN where an angle jumps by more than ``limit`` (±180° wrap): no vertical lines."""
+    y = np.array(y, float)
+    jump = np.zeros(y.shape, bool)
+    jump[1:] = np.abs(np.diff(y)) > limit
+    y[jump] = np.nan
+    return y
+
+
+def plot_euler(trial, estimates: dict, out=None, t_range=None, title=None, figsize=(11, 7), dpi=100):
+    """Roll/pitch/yaw [deg] of each estimate (name -> ``(N, 4)``) against the ground truth
+    ``trial.opt_quat`` (black) over time [s]; ``t_range=(t0, t1)`` crops. One Axes per angle;
+    each line's label is the estimate's name (``"truth"`` for the reference). Roll and yaw
+    wrap at ±180°: the sample after a wrap is left out of the line (NaN), no vertical jumps."""
+    n = trial.n_samples
+    t = np.arange(n) / trial.fs
+    sel = np.ones(n, bool) if t_range is None else (t >= t_range[0]) & (t <= t_range[1])
+    fig, axes = plt.subplots(3, 1, sharex=True, figsize=figsize, dpi=dpi)
+    truth = euler_deg(trial.opt_quat)
+    for name, q in estimates.items():
+        if np.shape(q) != (n, 4):
+            raise ValueError(f"estimate {name!r}: expected shape ({n}, 4), got {np.shape(q)}")
+    for i, ax in enumerate(axes):
+        ax.plot(t[sel], _break_wraps(truth[sel, i]), color=TRUTH_COLOR, lw=1.6, label="truth")
+        for k, (name, q) in enumerate(estimates.items()):
+            ax.plot(t[sel], _break_wraps(euler_deg(q)[sel, i]), color=EST_COLORS[k % len(EST_COLORS)], lw=1.0, label=name)
+        ax.set_ylabel(f"{EULER_NAMES[i]} [°]")
+        ax.set_ylim(-185 if i != 1 else -95, 185 if i != 1 else 95)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", ncol=len(estimates) + 1, fontsize="small")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title or f"{trial.name}: Euler angles (ZYX), estimate vs truth")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+# -- 3-D ----------------------------------------------------------------------------------------
+def _box_polys(q, center):
+    """The 6 faces of the IMU box rotated by ``q`` (sensor -> ENU) around ``center``."""
+    c = quat.rotate(np.broadcast_to(q, (8, 4)), _CORNERS) + center
+    return [c[list(f)] for f in _FACES]
+
+
+def _axis_segments(q, center, length=0.75):
+    d = quat.rotate(np.broadcast_to(q, (3, 4)), np.eye(3) * length)
+    return [(center, center + d[i]) for i in range(3)]
+
+
+class _Scene:
+    """One 3-D Axes with the estimate's box (left) and the truth's box (right), updatable."""
+
+    def __init__(self, ax, est_color=EST_COLORS[0], label_est="estimate"):
+        self.ax = ax
+        self.centers = (np.array([-_OFFSET, 0, 0]), np.array([_OFFSET, 0, 0]))
+        self.boxes, self.axes_lines = [], []
+        for j, color in enumerate((est_color, "0.6")):
+            poly = Poly3DCollection(_box_polys(quat.IDENTITY, self.centers[j]), facecolor=color, alpha=0.35,
+                                    edgecolor="k", linewidths=0.5)
+            ax.add_collection3d(poly)
+            self.boxes.append(poly)
+            lines = [ax.plot(*np.transpose(s), color=AXIS_COLORS[i], lw=2)[0]
+                     for i, s in enumerate(_axis_segments(quat.IDENTITY, self.centers[j]))]
+            self.axes_lines.append(lines)
+        ax.text(-_OFFSET, 0, 1.0, label_est, ha="center", fontsize=8)
+        self.truth_label = ax.text(_OFFSET, 0, 1.0, "truth", ha="center", fontsize=8)
+        lim = 1.6
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_zlim(-lim / 2, lim / 2)
+        ax.set_box_aspect((2, 2, 1))
+        ax.set_xlabel("E")
+        ax.set_ylabel("N")
+        ax.set_zlabel("U")
+        ax.tick_params(labelsize=6)
+
+    def set(self, q_est, q_true):
+        for j, q in enumerate((q_est, q_true)):
+            ok = bool(np.all(np.isfinite(q)))
+            q = np.asarray(q, float) if ok else quat.IDENTITY
+            self.boxes[j].set_verts(_box_polys(q, self.centers[j]))
+            self.boxes[j].set_visible(ok)
+            if j == 1:
+                self.truth_label.set_text("truth" if ok else "truth n/a")
+            for line, (a, b) in zip(self.axes_lines[j], _axis_segments(q, self.centers[j])):
+                line.set_data_3d(*np.transpose([a, b]))
+                line.set_visible(ok)
+
+
+def plot_3d_frames(trial, q_est, times, out=None, ncols=4, name="estimate", dpi=100):
+    """A grid of key frames at ``times`` [s]: the IMU box rotated by ``q_est`` ``(N, 4)`` beside
+    the ground truth (grey; hidden where the truth is NaN). Sensor axes x/y/z red/green/blue."""
+    q_est = np.asarray(q_est, float)
+    times = np.atleast_1d(np.asarray(times, float))
+    idx = np.clip(np.round(times * trial.fs).astype(int), 0, trial.n_samples - 1)
+    ncols = max(1, min(ncols, len(idx)))
+    nrows = -(-len(idx) // ncols)
+    fig = plt.figure(figsize=(3.2 * ncols, 2.8 * nrows), dpi=dpi)
+    for k, i in enumerate(idx):
+        ax = fig.add_subplot(nrows, ncols, k + 1, projection="3d")
+        _Scene(ax, label_est=name).set(q_est[i], trial.opt_quat[i])
+        ax.set_title(f"t = {i / trial.fs:.1f} s", fontsize=9)
+    fig.suptitle(f"{trial.name}: {name} (left) vs truth (right)")
+    fig.subplots_adjust(top=0.82 if nrows == 1 else 0.9)
+    return _save(fig, out)
+
+
+def ffmpeg_available() -> bool:
+    from matplotlib import animation
+
+    return animation.writers.is_available("ffmpeg")
+
+
+def animation_path(path) -> Path:
+    """Where ``animate_3d`` writes: ``path``, or with ``.gif`` when it asks for ``.mp4`` and
+    ffmpeg is missing."""
+    path = Path(path)
+    if path.suffix.lower() == ".mp4" and not ffmpeg_available():
+        return path.with_suffix(".gif")
+    return path
+
+
+def animate_3d(trial, q_est, path, fps: int = 10, duration: float | None = None, t_range=None,
+               name="estimate", dpi=72):
+    """Animate the estimate beside the truth and write ``path``: MP4 (``FFMpegWriter``) when
+    ffmpeg is available, else GIF (``PillowWriter``; ``animation_path`` says which).
+
+    The trial (or ``t_range``) is subsampled to ``fps * duration`` frames (default: the real
+    time span, at most 8 s of animation: ~0.1 s of rendering per frame) so it renders in
+    seconds. Returns the Figure."""
+    from matplotlib import animation
+
+    q_est = np.asarray(q_est, float)
+    t0, t1 = (0.0, trial.duration) if t_range is None else t_range
+    i0, i1 = int(max(0, t0 * trial.fs)), int(min(trial.n_samples, t1 * trial.fs))
+    if i1 <= i0:
+        raise ValueError(f"empty time range {t_range}")
+    if duration is None:
+        duration = min(8.0, (i1 - i0) / trial.fs)
+    n_frames = max(2, int(round(fps * duration)))
+    idx = np.unique(np.linspace(i0, i1 - 1, n_frames).astype(int))
+    fig = plt.figure(figsize=(5, 3.6), dpi=dpi)
+    ax = fig.add_subplot(projection="3d")
+    scene = _Scene(ax, label_est=name)
+    title = ax.set_title("")
+
+    def frame(k):
+        i = idx[k]
+        scene.set(q_est[i], trial.opt_quat[i])
+        title.set_text(f"{trial.name[:30]}  t = {i / trial.fs:5.1f} s")
+        return []
+
+    anim = animation.FuncAnimation(fig, frame, frames=len(idx), blit=False)
+    out = animation_path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    writer = animation.FFMpegWriter(fps=fps) if out.suffix.lower() == ".mp4" else animation.PillowWriter(fps=fps)
+    anim.save(out, writer=writer, dpi=dpi)
+    return fig
+
+

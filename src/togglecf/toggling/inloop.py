@@ -1,0 +1,143 @@
+"""The toggling filter with its models in the compiled loop: features pushed every sample, trees
+evaluated every hop, the toggling step (``filters.toggling``) after each sample."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from togglecf.features.streaming import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features
+from togglecf.features.windows import hop_length
+from togglecf.filters.base import FilterOutput
+from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter, toggle_step
+from togglecf.learn.compiled import CompiledModels
+from togglecf.learn.trees import predict_margin_row
+
+__all__ = ["ModelTogglingFilter", "inloop_step", "inloop_batch"]
+
+
+@njit(cache=True)
+def inloop_step(state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
+                feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
+                feat, margin, pred):
+    """One sample with the models in the loop: push features; at a window end (every ``hop``
+    samples once the window is full) evaluate the trees into ``pred`` (held until the next
+    hop); then the toggling step."""
+    push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
+    L = ring.shape[0]
+    count = int(aux[0])
+    if count >= L and (count - L) % hop == 0:
+        window_features(ring, aux, feat)
+        predict_margin_row(feat, feature, threshold, left, right, default_left, value, roots, tree_group,
+                           base_margin, margin)
+        mx = margin[0]
+        for s in range(1, n_classes):
+            mx = max(mx, margin[s])
+        tot = 0.0
+        for s in range(n_classes):
+            pred[s] = math.exp(margin[s] - mx)  # softmax of the class margins
+            tot += pred[s]
+        for s in range(n_classes):
+            pred[s] /= tot
+        for j in range(N_PRED_NOISE):
+            pred[n_classes + j] = margin[n_classes + j]
+    toggle_step(state, params, gyr, acc, mag, dt, pred, diag)
+
+
+@njit(cache=True)
+def inloop_batch(state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
+                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
+                 feat, margin, pred, quat_out, diag_out, pred_out):
+    for i in range(gyr.shape[0]):
+        inloop_step(state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
+                    n_classes, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
+                    feat, margin, pred)
+        quat_out[i, 0] = state[0]
+        quat_out[i, 1] = state[1]
+        quat_out[i, 2] = state[2]
+        quat_out[i, 3] = state[3]
+        pred_out[i] = pred
+
+
+class ModelTogglingFilter(TogglingFilter):
+    """The toggling CF with its models in the compiled loop: ``ModelTogglingFilter(fs,
+    models=CompiledModels.from_bundle(load_bundle(dir)), alpha_acc=..., ...)``.
+
+    ``update``/``update_batch`` take only IMU samples; the diagnostics add the predictions
+    (``p_<state>``, ``eta_acc_x`` ...). The full state (filter + feature window + held
+    prediction) is saved and restored by ``get_state``/``set_state``.
+    """
+
+    def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
+        if settings is None:
+            overrides.setdefault("states", models.class_names)
+            overrides.setdefault("static_state", models.static_state)
+        super().__init__(fs, settings, use_mag=use_mag, **overrides)
+        if tuple(self.settings.states) != models.class_names:
+            raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
+        self.models = models
+        k = len(models.class_names)
+        s = self.settings
+        # η̂_m enters step 3 (weight w_m) and step 4 (σ_m > 0), and only in 9D
+        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
+        unused = [k + j for j in range(3) if s.noise_weight_acc == 0.0] + [k + 3 + j for j in range(3) if not mag_needed]
+        # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
+        self.forest = models.forest.without_outputs(unused) if unused else models.forest
+        self._features = StreamingFeatures(self.fs, models.feature_settings)
+        self.hop = hop_length(self.fs, models.feature_settings.hop_s)
+        self._reset_model_state()
+
+    def _reset_model_state(self):
+        self._features.ring[:] = 0.0
+        self._features.aux[:] = 0.0
+        self.pred = np.full(self.n_predictions, np.nan)  # no prediction before the first full window
+        self._feat = np.empty(N_FEATURES)
+        self._margin = np.empty(self.n_predictions)
+
+    def reset(self):
+        super().reset()
+        if hasattr(self, "models"):
+            self._reset_model_state()
+
+    def get_state(self) -> np.ndarray:
+        return np.concatenate([self.state, self._features.aux, self._features.ring.ravel(), self.pred])
+
+    def set_state(self, state):
+        state = np.asarray(state, np.float64)
+        sizes = [self.state.size, N_AUX, self._features.ring.size, self.pred.size]
+        if state.shape != (sum(sizes),):
+            raise ValueError(f"{type(self).__name__}: state must have shape ({sum(sizes)},), got {state.shape}")
+        a, b, c = np.cumsum(sizes)[:3]
+        self.state[:] = state[:a]
+        self._features.aux[:] = state[a:b]
+        self._features.ring[:] = state[b:c].reshape(self._features.ring.shape)
+        self.pred[:] = state[c:]
+
+    def _model_args(self):
+        return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
+                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred)
+
+    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
+        if prediction is not None:
+            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
+        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
+        inloop_step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
+        return self.quat
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
+        if predictions is not None:
+            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
+        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
+        n = g.shape[0]
+        quat_out = np.empty((n, 4))
+        diag_out = np.zeros((n, len(self.diagnostic_names)))
+        pred_out = np.empty((n, self.n_predictions))
+        inloop_batch(self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out, pred_out)
+        if n:
+            self._diag[:] = diag_out[-1]
+        diags = {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)}
+        names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
+        diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
+        return FilterOutput(quat_out, diags)

@@ -1,0 +1,48 @@
+"""Loading a trained toggling filter from a model directory (``togglecf train`` output)."""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from togglecf.learn.compiled import CompiledModels
+from togglecf.learn.models import load_bundle
+from togglecf.toggling.gains import load_gains
+from togglecf.toggling.inloop import ModelTogglingFilter
+
+__all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest"]
+
+#: content digest of a model directory -> its CompiledModels (flattening the trees takes ~1 s)
+_COMPILED_CACHE: dict = {}
+
+
+def model_dir_digest(model_dir) -> str:
+    """sha256 over ``metadata.json`` and every model file it lists: the identity of the models'
+    *content*, so a directory retrained in place is never served from the cache with old trees."""
+    d = Path(model_dir)
+    meta_path = d / "metadata.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{d}: no metadata.json (not a togglecf model directory, or an unfinished run)")
+    raw = meta_path.read_bytes()
+    h = hashlib.sha256(raw)
+    for name in sorted(json.loads(raw).get("model_files", {})):
+        f = d / name
+        h.update(name.encode())
+        h.update(f.read_bytes() if f.is_file() else b"<missing>")
+    return h.hexdigest()
+
+
+def load_compiled_models(model_dir) -> CompiledModels:
+    """The models of a directory (schema-checked, hash-verified) flattened for the loop; cached
+    per process by content (``model_dir_digest``)."""
+    key = model_dir_digest(model_dir)
+    if key not in _COMPILED_CACHE:
+        _COMPILED_CACHE[key] = CompiledModels.from_bundle(load_bundle(model_dir))
+    return _COMPILED_CACHE[key]
+
+
+def load_toggling_filter(model_dir, fs: float, use_mag: bool = True) -> ModelTogglingFilter:
+    """The trained toggling filter of a model directory: the models compiled for the loop, with
+    the learned gains of the mode (9D with ``use_mag``, else 6D)."""
+    return ModelTogglingFilter(fs, load_gains(model_dir, use_mag=use_mag), models=load_compiled_models(model_dir),
+                               use_mag=use_mag)

@@ -1,0 +1,78 @@
+"""The filter registry (``FilterSpec``): every filter by name, the trained toggling filter
+included, validated without a sampling rate; compiled models cached by content."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from togglecf.filters import FILTERS, MadgwickFilter
+from togglecf.registry import FILTER_NAMES, TOGGLING, FilterSpec, filter_spec
+from togglecf.run.config import load_config
+from togglecf.run.train import run_training
+from togglecf.toggling import load_toggling_filter, model_dir_digest
+
+
+def test_names_cover_classic_filters_and_toggling():
+    assert set(FILTER_NAMES) == set(FILTERS) | {TOGGLING}
+
+
+def test_classic_specs_validate_without_a_rate():
+    spec = FilterSpec("madgwick", {"beta": 0.05})
+    assert spec.settings.beta == 0.05
+    for bad, msg in ((FilterSpec, "unknown filter"),):
+        with pytest.raises(ValueError, match=msg):
+            bad("no_such_filter")
+    with pytest.raises(ValueError, match="unknown setting"):
+        FilterSpec("madgwick", {"gamma": 1.0})
+    with pytest.raises(ValueError, match="alpha must be in"):
+        FilterSpec("cf", {"alpha": 2.0})  # the settings' own range check, no filter built
+    with pytest.raises(ValueError, match="--models is for"):
+        FilterSpec("cf", models="somewhere")
+
+
+@pytest.mark.parametrize("fs", [50.0, 285.714])
+def test_build_at_any_rate(fs):
+    f = FilterSpec("madgwick", {"beta": 0.05}, use_mag=False).build(fs)
+    assert isinstance(f, MadgwickFilter) and f.fs == fs and not f.use_mag and f.settings.beta == 0.05
+
+
+def test_toggling_spec_needs_a_trained_directory(tmp_path):
+    with pytest.raises(ValueError, match="needs a model directory"):
+        FilterSpec(TOGGLING)
+    with pytest.raises(ValueError, match="no --param"):
+        FilterSpec(TOGGLING, {"alpha": 0.1}, models=tmp_path)
+    with pytest.raises(FileNotFoundError, match="no learned gains"):
+        FilterSpec(TOGGLING, models=tmp_path)
+    with pytest.raises(ValueError, match="sweep's parameter dict|model directory"):
+        filter_spec(TOGGLING, {})
+
+
+def _train(mini_index, out, n_estimators):
+    cfg = load_config()
+    cfg["classifier"].update(n_estimators=n_estimators, max_depth=3)
+    cfg["regressor"].update(n_estimators=3, max_depth=3)
+    cfg["gains"].update(alpha=[0.0002, 0.002], gamma=[1.0], bias_gain=[0.0], mag_disturbance_scale=[0.0], sweeps=1,
+                        modes=["9d"])
+    run_training(cfg, data_dir=mini_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
+
+
+def test_retrained_directory_is_not_served_from_the_cache(mini_index, tmp_path):
+    """Defect of issue 14: the compiled-model cache was keyed on the path, so a directory
+    retrained in place ran old trees with new gains. It is keyed on the content now."""
+    d = tmp_path / "models"
+    _train(mini_index, d, n_estimators=4)
+    first = load_toggling_filter(d, 100.0)
+    digest = model_dir_digest(d)
+    n_first = first.models.forest.n_nodes
+    shutil.rmtree(d)
+    _train(mini_index, d, n_estimators=9)  # same path, other trees
+    second = load_toggling_filter(d, 100.0)
+    assert model_dir_digest(d) != digest
+    assert second.models.forest.n_nodes != n_first
+    assert FilterSpec(TOGGLING, models=d).identity() == model_dir_digest(d)
+    meta = json.loads((d / "metadata.json").read_text())
+    assert meta["classifier_params"]["n_estimators"] == 9
+    t = mini_index.load("07_undisturbed_fast_rotation_B")
+    q = second.update_batch(t.gyr, t.acc, t.mag).quat
+    assert np.all(np.isfinite(q))

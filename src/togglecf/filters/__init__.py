@@ -11,10 +11,12 @@ from togglecf.filters.ekf import EKFFilter, EKFSettings
 from togglecf.filters.gyro_only import GyroOnlyFilter, GyroSettings
 from togglecf.filters.madgwick import MadgwickFilter, MadgwickSettings
 from togglecf.filters.mahony import MahonyFilter, MahonySettings
+from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings
 
 FILTERS = {
     cls.name: cls
-    for cls in (ComplementaryFilter, GyroOnlyFilter, AccMagFilter, MadgwickFilter, MahonyFilter, AquaFilter, EKFFilter)
+    for cls in (ComplementaryFilter, GyroOnlyFilter, AccMagFilter, MadgwickFilter, MahonyFilter, AquaFilter, EKFFilter,
+                VQFCoreFilter)
 }
 
 
@@ -30,4 +32,4 @@ def make_filter(name: str, fs: float, use_mag: bool = True, **settings) -> Orien
 __all__ = ["FILTERS", "make_filter", "OrientationFilter", "FilterOutput", "FilterSettings", "dt_from_timestamps",
            "ComplementaryFilter", "CFSettings", "GyroOnlyFilter", "GyroSettings", "AccMagFilter", "AccMagSettings",
            "MadgwickFilter", "MadgwickSettings", "MahonyFilter", "MahonySettings", "AquaFilter", "AquaSettings",
-           "EKFFilter", "EKFSettings"]
+           "EKFFilter", "EKFSettings", "VQFCoreFilter", "VQFCoreSettings"]

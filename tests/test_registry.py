@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from togglecf.filters import FILTERS, MadgwickFilter
-from togglecf.registry import FILTER_NAMES, TOGGLING, FilterSpec, filter_spec
+from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec, filter_spec
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.toggling import load_toggling_filter, model_dir_digest
 
 
 def test_names_cover_classic_filters_and_toggling():
-    assert set(FILTER_NAMES) == set(FILTERS) | {TOGGLING}
+    assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) and TOGGLING in TRAINED
 
 
 def test_classic_specs_validate_without_a_rate():

@@ -15,12 +15,16 @@ from togglecf.filters import FILTERS, OrientationFilter
 from togglecf.toggling.gains import load_gains
 from togglecf.toggling.load import load_toggling_filter, model_dir_digest
 
-__all__ = ["FilterSpec", "TOGGLING", "FILTER_NAMES", "filter_spec"]
+__all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "TRAINED", "FILTER_NAMES", "filter_spec"]
 
 #: CLI name of the trained toggling filter (``--filter toggling --models DIR``)
 TOGGLING = "toggling"
+#: CLI name of the VQF core with learned time constants (``--filter vqf_toggling --models DIR``)
+VQF_TOGGLING = "vqf_toggling"
+#: the filters trained by ``togglecf train`` (models + learned gains in a model directory)
+TRAINED = (TOGGLING, VQF_TOGGLING)
 #: every name a command accepts
-FILTER_NAMES = tuple(sorted(FILTERS)) + (TOGGLING,)
+FILTER_NAMES = tuple(sorted(FILTERS)) + TRAINED
 
 
 @dataclass(frozen=True)
@@ -36,18 +40,20 @@ class FilterSpec:
 
     def __post_init__(self):
         object.__setattr__(self, "params", dict(self.params))
-        if self.name == TOGGLING:
+        if self.name in TRAINED:
             if self.params:
-                raise ValueError("the toggling filter takes no --param: its models and learned gains come from --models DIR")
+                raise ValueError(f"the {self.name} filter takes no --param: its models and learned gains come from "
+                                 "--models DIR")
             if not self.models:
-                raise ValueError("the toggling filter needs a model directory (--models DIR, a `togglecf train` output)")
+                raise ValueError(f"the {self.name} filter needs a model directory (--models DIR, a `togglecf train` "
+                                 "output)")
             object.__setattr__(self, "models", str(Path(self.models).resolve()))
-            load_gains(self.models, use_mag=self.use_mag)  # refuses a directory without models or gains of this mode
+            load_gains(self.models, use_mag=self.use_mag, kind=self.name)  # no models or no gains of this mode: refused
             return
         if self.name not in FILTERS:
             raise ValueError(f"unknown filter {self.name!r}; available: {', '.join(FILTER_NAMES)}")
         if self.models is not None:
-            raise ValueError(f"--models is for --filter {TOGGLING}, not {self.name}")
+            raise ValueError(f"--models is for --filter {'/'.join(TRAINED)}, not {self.name}")
         cls = FILTERS[self.name]
         known = {f.name for f in fields(cls.Settings)}
         unknown = sorted(set(self.params) - known)
@@ -58,31 +64,31 @@ class FilterSpec:
     @property
     def settings(self):
         """The settings the filter runs with (the learned gains for the toggling filter)."""
-        if self.name == TOGGLING:
-            return load_gains(self.models, use_mag=self.use_mag)
+        if self.name in TRAINED:
+            return load_gains(self.models, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name].Settings(**self.params)
 
     def build(self, fs: float) -> OrientationFilter:
         """The filter at sampling rate ``fs`` [Hz], freshly initialised."""
-        if self.name == TOGGLING:
-            return load_toggling_filter(self.models, fs, use_mag=self.use_mag)
+        if self.name in TRAINED:
+            return load_toggling_filter(self.models, fs, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name](fs, use_mag=self.use_mag, **self.params)
 
     def identity(self):
         """What results computed with this spec depend on beyond name and params (journal keys):
         the content of the model directory for the toggling filter."""
-        return model_dir_digest(self.models) if self.name == TOGGLING else None
+        return model_dir_digest(self.models) if self.name in TRAINED else None
 
     def as_params(self) -> dict:
         """The parameter dict of sweeps and journals (``{"models": DIR}`` for the toggling filter)."""
-        return {"models": self.models} if self.name == TOGGLING else dict(self.params)
+        return {"models": self.models} if self.name in TRAINED else dict(self.params)
 
 
 def filter_spec(name: str, params: dict | None = None, use_mag: bool = True) -> FilterSpec:
     """A spec from a sweep's parameter dict: ``{"models": DIR}`` for the toggling filter, settings
     overrides for the others."""
     params = dict(params or {})
-    if name == TOGGLING:
+    if name in TRAINED:
         models = params.pop("models", None)
         return FilterSpec(name, params, models=models, use_mag=use_mag)
     return FilterSpec(name, params, use_mag=use_mag)

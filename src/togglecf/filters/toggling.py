@@ -243,7 +243,44 @@ def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, 
         quat_out[i, 3] = state[3]
 
 
-class TogglingFilter(OrientationFilter):
+class PredictionDrivenFilter(OrientationFilter):
+    """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
+    acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
+    probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
+    m/s² and µT). ``update``/``update_batch`` take the predictions beside the IMU samples; with
+    none given, ``_default_pred`` stands in ("no model")."""
+
+    @property
+    def n_predictions(self) -> int:
+        return len(self.settings.states) + N_PRED_NOISE
+
+    def _default_pred(self, n):
+        raise NotImplementedError
+
+    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
+        pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
+        if pred.shape != (self.n_predictions,):
+            raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
+        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
+        type(self).step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], pred, self._diag)
+        return self.quat
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
+        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
+        n = g.shape[0]
+        pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
+        if pred.shape != (n, self.n_predictions):
+            raise ValueError(f"predictions: expected shape ({n}, {self.n_predictions}), got {pred.shape}")
+        quat_out = np.empty((n, 4))
+        diag_out = np.zeros((n, len(self.diagnostic_names)))
+        run_batch_predicted(type(self).step, self.state, self.params, g, a, m, dt_arr, pred, quat_out, diag_out)
+        if n:
+            self._diag[:] = diag_out[-1]
+        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})
+
+
+class TogglingFilter(PredictionDrivenFilter):
     """The toggling-gain CF driven by per-sample predictions.
 
     ``update_batch(gyr, acc, mag, predictions=P)`` with ``P (N, S + 6)``: state
@@ -256,6 +293,7 @@ class TogglingFilter(OrientationFilter):
     Coefficients = TogglingCoefficients
     state_names = _STATE
     diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm")
+    step = toggle_step
 
     def _coefficients(self) -> dict:
         s = self.settings
@@ -264,33 +302,7 @@ class TogglingFilter(OrientationFilter):
                 "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
 
-    @property
-    def n_predictions(self) -> int:
-        return len(self.settings.states) + N_PRED_NOISE
-
     def _default_pred(self, n):
         pred = np.zeros((n, self.n_predictions))
         pred[:, 0] = 1.0
         return pred
-
-    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
-        pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
-        if pred.shape != (self.n_predictions,):
-            raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
-        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
-                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
-        toggle_step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], pred, self._diag)
-        return self.quat
-
-    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
-        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
-        n = g.shape[0]
-        pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
-        if pred.shape != (n, self.n_predictions):
-            raise ValueError(f"predictions: expected shape ({n}, {self.n_predictions}), got {pred.shape}")
-        quat_out = np.empty((n, 4))
-        diag_out = np.zeros((n, len(self.diagnostic_names)))
-        run_batch_predicted(toggle_step, self.state, self.params, g, a, m, dt_arr, pred, quat_out, diag_out)
-        if n:
-            self._diag[:] = diag_out[-1]
-        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})

@@ -1,7 +1,17 @@
 """Execution backends: this process, a local process pool, or a Dask cluster; trials loaded where
 the work runs."""
-from togglecf.parallel.backend import (Backend, BackendError, DaskBackend, InlineBackend, LocalBackend, Outcome,
-                                       load_trial_cached, make_backend, sweep_chunk_size, trial_identity)
+from togglecf.parallel.backend import (
+                                       Backend,
+                                       BackendError,
+                                       DaskBackend,
+                                       InlineBackend,
+                                       LocalBackend,
+                                       Outcome,
+                                       load_trial_cached,
+                                       make_backend,
+                                       sweep_chunk_size,
+                                       trial_identity,
+)
 
 __all__ = ["Backend", "BackendError", "DaskBackend", "InlineBackend", "LocalBackend", "Outcome", "load_trial_cached",
            "make_backend", "sweep_chunk_size", "trial_identity"]

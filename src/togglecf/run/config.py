@@ -10,14 +10,15 @@ from togglecf.core.config import config_path, load_run_section, read_toml
 from togglecf.features.windows import FeatureSettings
 from togglecf.learn.labels import LabelSettings
 from togglecf.learn.models import MotionClassifier, NoiseRegressor
-from togglecf.toggling.gains import GainSearch
+from togglecf.toggling.gains import MODES, GainSearch, VQFGainSearch
 
 __all__ = ["DEFAULT_CONFIG", "load_config", "SECTIONS", "GAIN_KEYS"]
 
 DEFAULT_CONFIG = config_path("default.toml")
 SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
-#: keys of ``[gains]`` that say whether and for which modes gains are learned (the rest is the search)
-GAIN_KEYS = ("learn", "modes")
+#: keys of ``[gains]`` that are not the toggling CF's search grids: whether and for which modes (``toggling.gains.MODES``)
+#: gains are learned, and ``vqf``, the sub-table of the VQF core's search (``VQFGainSearch``)
+GAIN_KEYS = ("learn", "modes", "vqf")
 
 
 def load_config(source=None) -> dict:
@@ -32,6 +33,10 @@ def load_config(source=None) -> dict:
     LabelSettings.from_dict({**cfg["labels"], "seed": cfg["run"]["seed"]})  # validate early
     FeatureSettings.from_dict(cfg["features"])
     GainSearch.from_dict({k: v for k, v in cfg["gains"].items() if k not in GAIN_KEYS})
+    VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
+    bad_modes = sorted(set(cfg["gains"].get("modes", ())) - set(MODES))
+    if bad_modes:
+        raise ValueError(f"{what} [gains] modes: unknown {bad_modes}; known: {list(MODES)}")
     for sec, cls in (("classifier", MotionClassifier), ("regressor", NoiseRegressor)):
         allowed = set(cls.param_names()) - {"nthread", "seed", "target"}
         unknown = sorted(set(cfg[sec]) - allowed)

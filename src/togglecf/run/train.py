@@ -31,7 +31,7 @@ from togglecf.learn.labels import LabelSettings, state_names
 from togglecf.learn.models import save_bundle
 from togglecf.parallel.backend import InlineBackend, make_backend
 from togglecf.run.config import GAIN_KEYS, load_config
-from togglecf.toggling.gains import GainSearch, learn_and_save_gains
+from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_gains
 
 __all__ = ["run_training"]
 
@@ -157,7 +157,8 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
             preds = [hold_predictions(*oof[n], data.per_trial[n]["n_samples"]) for n in names]
             result["oof_predictions"] = dict(zip(names, preds))
         learn_and_save_gains(out_dir, [index.load(n) for n in names], search, tuple(gcfg.get("modes", ("9d", "6d"))),
-                             jobs=int(run["nthread"]), log=say, predictions=preds)
+                             jobs=int(run["nthread"]), log=say, predictions=preds,
+                             vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})))
         timing["gains_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     say(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "

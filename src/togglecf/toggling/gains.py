@@ -23,11 +23,12 @@ from numba import njit
 from togglecf.core.io import atomic_write_json, check_keys
 from togglecf.core.progress import progress
 from togglecf.filters.toggling import TogglingFilter, TogglingSettings
+from togglecf.filters.vqf_toggling import VQFTogglingFilter, VQFTogglingSettings
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,9 +63,82 @@ class GainSearch:
         return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
                       for k, v in check_keys(cls, d, "gain-search").items()})
 
+    def start(self, states, static_state) -> TogglingSettings:
+        """Where the descent starts: moderate gains in every state."""
+        n = len(states)
+        return TogglingSettings(states=tuple(states), static_state=static_state, alpha_acc=(0.001,) * n,
+                                alpha_mag=(0.0003,) * n, gamma=1.0, bias_gain=0.001)
+
+    def candidates(self, settings: TogglingSettings, use_mag: bool = True):
+        """(label, [(value, change), ...]) for each coordinate of the descent."""
+        n = len(settings.states)
+        for name in ("alpha_acc", "alpha_mag") if use_mag else ("alpha_acc",):
+            for s in range(n):
+                vals = []
+                for a in self.alpha:
+                    g = list(getattr(settings, name))
+                    g[s] = a
+                    vals.append((a, {name: tuple(g)}))
+                yield f"{name}[{settings.states[s]}]", vals
+        for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "bias_gate") + (
+                ("mag_disturbance_scale",) if use_mag else ()):
+            yield name, [(v, {name: v}) for v in getattr(self, name)]
+
+
+@dataclass(frozen=True)
+class VQFGainSearch:
+    """Grids of the coordinate descent of the VQF core's learned time constants
+    (``filters.vqf_toggling``): per state τ_acc [s], τ_mag [s] (9D) and σ_motion [°/s]; the
+    confidence floor c₀; the noise weights. The descent starts at the core's own settings
+    (learning off), so on the training trials it can only improve on the core."""
+
+    tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
+    tau_mag: tuple = (2.0, 5.0, 9.0, 20.0, 50.0, 120.0)
+    bias_sigma_motion: tuple = (0.03, 0.1, 0.3)
+    confidence_floor: tuple = (0.0, 0.5, 0.7)
+    noise_weight_acc: tuple = (0.0, 0.5, 1.0)
+    noise_weight_mag: tuple = (0.0, 0.5, 1.0)
+    sweeps: int = 2
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "VQFGainSearch":
+        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
+                      for k, v in check_keys(cls, d, "VQF gain-search").items()})
+
+    def start(self, states, static_state=None) -> VQFTogglingSettings:
+        return VQFTogglingSettings(states=tuple(states))
+
+    def candidates(self, settings: VQFTogglingSettings, use_mag: bool = True):
+        n = len(settings.states)
+        grids = (("tau_acc_states", self.tau_acc), ("bias_sigma_motion_states", self.bias_sigma_motion)) + (
+            (("tau_mag_states", self.tau_mag),) if use_mag else ())
+        for name, grid in grids:
+            for s in range(n):
+                vals = []
+                for v in grid:
+                    g = list(getattr(settings, name))
+                    g[s] = v
+                    vals.append((v, {name: tuple(g)}))
+                yield f"{name}[{settings.states[s]}]", vals
+        for name in ("confidence_floor", "noise_weight_acc") + (("noise_weight_mag",) if use_mag else ()):
+            yield name, [(v, {name: v}) for v in getattr(self, name)]
+
+
+#: gain modes of ``togglecf train`` ([gains] modes): mode -> (filter, 9D)
+MODES = {"9d": ("toggling", True), "6d": ("toggling", False), "vqf_9d": ("vqf_toggling", True),
+         "vqf_6d": ("vqf_toggling", False)}
+_SETTINGS_OF = {"toggling": TogglingSettings, "vqf_toggling": VQFTogglingSettings}
+_FILTER_OF = {TogglingSettings: TogglingFilter, VQFTogglingSettings: VQFTogglingFilter}
+_KIND_OF = {v: k for k, v in _SETTINGS_OF.items()}
+
+
+def filter_for(settings):
+    """The prediction-driven filter class that runs ``settings``."""
+    return _FILTER_OF[type(settings)]
+
 
 def _trial_total(t, pred, settings, use_mag) -> float:
-    f = TogglingFilter(t.fs, settings, use_mag=use_mag)
+    f = filter_for(settings)(t.fs, settings, use_mag=use_mag)
     q = f.update_batch(t.gyr, t.acc, t.mag if use_mag else None, predictions=pred).quat
     if not use_mag:
         q = remove_heading_offset(q, t.opt_quat, t.movement)
@@ -104,7 +178,7 @@ def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bo
 _WORK = {}
 
 
-def _pool_task(i, settings, use_mag):
+def _pool_task(i, settings, use_mag):  # noqa: D103 (runs in a forked worker)
     t, p = _WORK["trials"][i], _WORK["predictions"][i]
     return _trial_total(t, p, settings, use_mag)
 
@@ -112,10 +186,9 @@ def _pool_task(i, settings, use_mag):
 class _TrialPool:
     """Fork workers that inherit the trials and predictions (nothing large is pickled)."""
 
-    def __init__(self, trials, predictions, jobs):
-
+    def __init__(self, trials, predictions, jobs, filter_cls=TogglingFilter):
         _WORK["trials"], _WORK["predictions"] = list(trials), list(predictions)
-        TogglingFilter(100.0).update_batch(np.zeros((2, 3)), np.ones((2, 3)), np.ones((2, 3)))  # compile first
+        filter_cls(100.0).update_batch(np.zeros((2, 3)), np.ones((2, 3)), np.ones((2, 3)))  # compile before forking
         self.n = len(trials)
         self.ex = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork"))
 
@@ -127,21 +200,6 @@ class _TrialPool:
         _WORK.clear()
 
 
-def _candidates(settings: TogglingSettings, search: GainSearch):
-    """(label, list of settings) for each coordinate."""
-    n = len(settings.states)
-    for name in ("alpha_acc", "alpha_mag"):
-        for s in range(n):
-            vals = []
-            for a in search.alpha:
-                g = list(getattr(settings, name))
-                g[s] = a
-                vals.append((a, {name: tuple(g)}))
-            yield f"{name}[{settings.states[s]}]", vals
-    for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "bias_gate", "mag_disturbance_scale"):
-        yield name, [(v, {name: v}) for v in getattr(search, name)]
-
-
 def learn_gains(trials, predictions, states, static_state, use_mag: bool = True, search: GainSearch | None = None,
                 start: TogglingSettings | None = None, verbose: bool = False, jobs: int = 1):
     """Coordinate descent from ``start`` (default: moderate gains). Returns ``(settings, history)``
@@ -150,7 +208,9 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
 
     # a daemonic process (a Dask worker, a pool worker) may not fork a pool: evaluate in-process there
     parallel = jobs > 1 and len(trials) > 1 and not mp.current_process().daemon
-    pool = _TrialPool(trials, predictions, jobs) if parallel else None
+    search = search or GainSearch()
+    probe = start or search.start(states, static_state)
+    pool = _TrialPool(trials, predictions, jobs, filter_for(probe)) if parallel else None
     try:
         return _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool)
     finally:
@@ -159,21 +219,14 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
 
 
 def _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool):
-    search = search or GainSearch()
-    n = len(states)
-    settings = start or TogglingSettings(states=tuple(states), static_state=static_state,
-                                         alpha_acc=(0.001,) * n, alpha_mag=(0.0003,) * n, gamma=1.0, bias_gain=0.001)
-    if not use_mag:
-        search = replace(search, mag_disturbance_scale=(settings.mag_disturbance_scale,))
+    settings = start or search.start(states, static_state)
     best = mean_total_rmse(settings, trials, predictions, use_mag, pool)
     history = [("start", None, best)]
-    coords = list(_candidates(settings, search))
+    coords = list(search.candidates(settings, use_mag))
     for sweep in range(search.sweeps):
         improved = False
         for label, _ in progress(coords, desc=f"gains sweep {sweep + 1}", unit="param"):
-            if not use_mag and label.startswith("alpha_mag"):
-                continue
-            cands = dict(_candidates(settings, search))[label]  # rebuilt from the current settings
+            cands = dict(search.candidates(settings, use_mag))[label]  # rebuilt from the current settings
             for value, change in cands:
                 trial_settings = replace(settings, **change)
                 if trial_settings == settings:
@@ -198,19 +251,25 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     they were learned on, the objective history and the models' schema hash they belong to."""
     model_dir = Path(model_dir)
     meta = json.loads((model_dir / "metadata.json").read_text())
-    key = "9d" if use_mag else "6d"
+    key = mode_name(_KIND_OF[type(settings)], use_mag)
     path = model_dir / GAINS_FILE
     doc = json.loads(path.read_text()) if path.is_file() else {}
     doc["feature_schema_hash"] = meta["feature_schema"]["hash"]
-    doc[key] = {"settings": asdict(settings), "trials": [getattr(t, "name", t) for t in trials],
+    doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trials": [getattr(t, "name", t) for t in trials],
                 "objective": "mean total RMSE [deg] over the trials (BROAD)", "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)
     return path
 
 
-def load_gains(model_dir, use_mag: bool = True) -> TogglingSettings:
-    """The learned settings stored by ``save_gains``; refuses gains learned for other models."""
+def mode_name(kind: str, use_mag: bool) -> str:
+    """The ``gains.json`` key (a ``MODES`` name) of a learned filter kind in 9D or 6D."""
+    return next(m for m, (k, nine) in MODES.items() if k == kind and nine == use_mag)
+
+
+def load_gains(model_dir, use_mag: bool = True, kind: str = "toggling"):
+    """The learned settings stored by ``save_gains`` for filter ``kind`` (``"toggling"`` or
+    ``"vqf_toggling"``) in 9D or 6D; refuses gains learned for other models."""
     model_dir = Path(model_dir)
     path = model_dir / GAINS_FILE
     if not path.is_file():
@@ -219,17 +278,19 @@ def load_gains(model_dir, use_mag: bool = True) -> TogglingSettings:
     meta = json.loads((model_dir / "metadata.json").read_text())
     if doc.get("feature_schema_hash") != meta["feature_schema"]["hash"]:
         raise ValueError(f"{path}: gains were learned for models with another feature schema")
-    key = "9d" if use_mag else "6d"
+    if kind not in _SETTINGS_OF:
+        raise ValueError(f"unknown learned filter {kind!r}; one of {sorted(_SETTINGS_OF)}")
+    key = mode_name(kind, use_mag)
     if key not in doc:
-        raise KeyError(f"{path}: no {key.upper()} gains stored (have: {sorted(k for k in doc if k in ('9d', '6d'))})")
-    s = dict(doc[key]["settings"])
-    for k in ("states", "alpha_acc", "alpha_mag"):
-        s[k] = tuple(s[k])
-    return TogglingSettings(**s)
+        have = sorted(k for k in doc if k in MODES)
+        raise KeyError(f"{path}: no gains of mode {key!r} stored (have: {have}); learn them with "
+                       f"`togglecf train` and [gains] modes = [..., \"{key}\"]")
+    s = {k: tuple(v) if isinstance(v, list) else v for k, v in doc[key]["settings"].items()}
+    return _SETTINGS_OF[kind](**s)
 
 
 def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=None,
-                         predictions=None) -> dict:
+                         predictions=None, vqf_search: VQFGainSearch | None = None) -> dict:
     """After ``togglecf train``: learn the gains of each mode on the training ``trials`` and store
     them in ``model_dir/gains.json``. Returns mode -> settings.
 
@@ -244,15 +305,25 @@ def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d
                                                           for t in trials]
     out = {}
     for mode in modes:
-        if mode not in ("9d", "6d"):
-            raise ValueError(f"gain mode must be '9d' or '6d', got {mode!r}")
+        if mode not in MODES:
+            raise ValueError(f"gain mode must be one of {list(MODES)}, got {mode!r}")
+        kind, use_mag = MODES[mode]
         t0 = time.perf_counter()
-        settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=mode == "9d",
-                                     search=search, jobs=jobs)
-        save_gains(model_dir, settings, trials, hist, use_mag=mode == "9d", predictions=source)
-        log(f"gains {mode.upper()} ({source} predictions): mean total RMSE on the training trials {hist[0][2]:.3f}° -> {hist[-1][2]:.3f}° "
-            f"in {time.perf_counter() - t0:.0f} s: acc {settings.alpha_acc}, mag {settings.alpha_mag}, "
-            f"gamma {settings.gamma}, bias {settings.bias_gain}, σ_m {settings.mag_disturbance_scale}, "
-            f"noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")
+        mode_search = search if kind == "toggling" else (vqf_search or VQFGainSearch())
+        settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=use_mag,
+                                     search=mode_search, jobs=jobs)
+        save_gains(model_dir, settings, trials, hist, use_mag=use_mag, predictions=source)
+        log(f"gains {mode} ({source} predictions): mean total RMSE on the training trials {hist[0][2]:.3f}° -> "
+            f"{hist[-1][2]:.3f}° in {time.perf_counter() - t0:.0f} s: {describe_gains(settings)}")
         out[mode] = settings
     return out
+
+
+def describe_gains(settings) -> str:
+    """The learned values of ``settings`` in one line (logs, reports)."""
+    if isinstance(settings, VQFTogglingSettings):
+        return (f"τ_acc {settings.tau_acc_states} s, τ_mag {settings.tau_mag_states} s, σ_motion "
+                f"{settings.bias_sigma_motion_states} °/s, c₀ {settings.confidence_floor}, noise weights "
+                f"{settings.noise_weight_acc}/{settings.noise_weight_mag}")
+    return (f"acc {settings.alpha_acc}, mag {settings.alpha_mag}, gamma {settings.gamma}, bias {settings.bias_gain}, "
+            f"σ_m {settings.mag_disturbance_scale}, noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")

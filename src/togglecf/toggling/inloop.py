@@ -3,6 +3,7 @@ evaluated every hop, the toggling step (``filters.toggling``) after each sample.
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 
 import numpy as np
 from numba import njit
@@ -10,20 +11,21 @@ from numba import njit
 from togglecf.features.streaming import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features
 from togglecf.features.windows import hop_length
 from togglecf.filters.base import FilterOutput
-from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter, toggle_step
+from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
+from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.trees import predict_margin_row
 
-__all__ = ["ModelTogglingFilter", "inloop_step", "inloop_batch"]
+__all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "inloop_step", "inloop_batch"]
 
 
 @njit(cache=True)
-def inloop_step(state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
+def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
                 feat, margin, pred):
     """One sample with the models in the loop: push features; at a window end (every ``hop``
     samples once the window is full) evaluate the trees into ``pred`` (held until the next
-    hop); then the toggling step."""
+    hop); then the filter's ``step`` with that prediction."""
     push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
     L = ring.shape[0]
     count = int(aux[0])
@@ -42,15 +44,15 @@ def inloop_step(state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last
             pred[s] /= tot
         for j in range(N_PRED_NOISE):
             pred[n_classes + j] = margin[n_classes + j]
-    toggle_step(state, params, gyr, acc, mag, dt, pred, diag)
+    step(state, params, gyr, acc, mag, dt, pred, diag)
 
 
 @njit(cache=True)
-def inloop_batch(state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
+def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
                  feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
                  feat, margin, pred, quat_out, diag_out, pred_out):
     for i in range(gyr.shape[0]):
-        inloop_step(state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
+        inloop_step(step, state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
                     n_classes, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
                     feat, margin, pred)
         quat_out[i, 0] = state[0]
@@ -60,9 +62,9 @@ def inloop_batch(state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src,
         pred_out[i] = pred
 
 
-class ModelTogglingFilter(TogglingFilter):
-    """The toggling CF with its models in the compiled loop: ``ModelTogglingFilter(fs,
-    models=CompiledModels.from_bundle(load_bundle(dir)), alpha_acc=..., ...)``.
+class InLoopModels:
+    """Mixin: a ``PredictionDrivenFilter`` with its models in the compiled loop, e.g.
+    ``ModelTogglingFilter(fs, settings, models=CompiledModels.from_bundle(load_bundle(dir)))``.
 
     ``update``/``update_batch`` take only IMU samples; the diagnostics add the predictions
     (``p_<state>``, ``eta_acc_x`` ...). The full state (filter + feature window + held
@@ -72,15 +74,16 @@ class ModelTogglingFilter(TogglingFilter):
     def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
         if settings is None:
             overrides.setdefault("states", models.class_names)
-            overrides.setdefault("static_state", models.static_state)
+            if "static_state" in {f.name for f in fields(self.Settings)}:
+                overrides.setdefault("static_state", models.static_state)
         super().__init__(fs, settings, use_mag=use_mag, **overrides)
         if tuple(self.settings.states) != models.class_names:
             raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
         self.models = models
         k = len(models.class_names)
         s = self.settings
-        # η̂_m enters step 3 (weight w_m) and step 4 (σ_m > 0), and only in 9D
-        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
+        # η̂_m enters the noise removal (weight w_m) and the toggling CF's disturbance scaling (σ_m > 0), in 9D only
+        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or getattr(s, "mag_disturbance_scale", 0.0) > 0.0)
         unused = [k + j for j in range(3) if s.noise_weight_acc == 0.0] + [k + 3 + j for j in range(3) if not mag_needed]
         # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
         self.forest = models.forest.without_outputs(unused) if unused else models.forest
@@ -120,24 +123,32 @@ class ModelTogglingFilter(TogglingFilter):
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
         if prediction is not None:
-            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
+            raise ValueError(f"{type(self).__name__} predicts itself; pass predictions to the filter without models")
         g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
                                        None if mag is None else np.reshape(mag, (1, 3)), dt)
-        inloop_step(self.state, self.params, g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
+        inloop_step(type(self).step, self.state, self.params, g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
         return self.quat
 
     def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
         if predictions is not None:
-            raise ValueError("ModelTogglingFilter predicts itself; use TogglingFilter to pass predictions")
+            raise ValueError(f"{type(self).__name__} predicts itself; pass predictions to the filter without models")
         g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
         n = g.shape[0]
         quat_out = np.empty((n, 4))
         diag_out = np.zeros((n, len(self.diagnostic_names)))
         pred_out = np.empty((n, self.n_predictions))
-        inloop_batch(self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out, pred_out)
+        inloop_batch(type(self).step, self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out, pred_out)
         if n:
             self._diag[:] = diag_out[-1]
         diags = {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)}
         names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
         diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
         return FilterOutput(quat_out, diags)
+
+
+class ModelTogglingFilter(InLoopModels, TogglingFilter):
+    """The toggling CF (``filters.toggling``) with its models in the compiled loop."""
+
+
+class ModelVQFTogglingFilter(InLoopModels, VQFTogglingFilter):
+    """The VQF core with learned time constants (``filters.vqf_toggling``) with its models in the loop."""

@@ -8,7 +8,7 @@ from pathlib import Path
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.toggling.gains import load_gains
-from togglecf.toggling.inloop import ModelTogglingFilter
+from togglecf.toggling.inloop import InLoopModels, ModelTogglingFilter, ModelVQFTogglingFilter
 
 __all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest"]
 
@@ -41,8 +41,13 @@ def load_compiled_models(model_dir) -> CompiledModels:
     return _COMPILED_CACHE[key]
 
 
-def load_toggling_filter(model_dir, fs: float, use_mag: bool = True) -> ModelTogglingFilter:
-    """The trained toggling filter of a model directory: the models compiled for the loop, with
-    the learned gains of the mode (9D with ``use_mag``, else 6D)."""
-    return ModelTogglingFilter(fs, load_gains(model_dir, use_mag=use_mag), models=load_compiled_models(model_dir),
-                               use_mag=use_mag)
+#: learned filter kind -> the class that runs it with its models in the loop
+IN_LOOP = {"toggling": ModelTogglingFilter, "vqf_toggling": ModelVQFTogglingFilter}
+
+
+def load_toggling_filter(model_dir, fs: float, use_mag: bool = True, kind: str = "toggling") -> InLoopModels:
+    """A trained filter of a model directory: the models compiled for the loop, with the learned
+    gains of ``kind`` (``"toggling"``: the toggling CF; ``"vqf_toggling"``: the VQF core with
+    learned time constants) in 9D (``use_mag``) or 6D."""
+    return IN_LOOP[kind](fs, load_gains(model_dir, use_mag=use_mag, kind=kind), models=load_compiled_models(model_dir),
+                         use_mag=use_mag)

@@ -1,0 +1,360 @@
+"""The VQF-class core filter (``togglecf.filters.vqf_core``) as a self-contained C99 source set
+(issue 13, part 5).
+
+``export_c_vqf(out_dir, fs, settings=None, use_mag=True)`` writes into ``out_dir``:
+
+* ``tcf_vqf.h`` / ``tcf_vqf.c``: hand-written port of ``vqf_core_step`` (float32, no heap, no
+  globals written, all state in one fixed-size ``tcf_vqf_t``; templates shipped in
+  ``togglecf/embedded/``). The coefficients are derived *in C* by ``tcf_vqf_init`` from the
+  physical settings and Ts (the formulas of ``VQFCoreFilter._coefficients``), so firmware can
+  pick rate and settings at run time and the generated header holds only settings; in float32
+  this loses nothing because the second-order low-passes use a well-conditioned "delta" form
+  (see ``tcf_vqf.h``) whose two coefficients are small numbers with full relative precision;
+* ``tcf_vqf_config.h``: generated: rate, mode and every setting as ``TCF_VQF_PARAMS_INIT``
+  (a ``tcf_vqf_params_t`` initialiser);
+* ``tcf_vqf_harness.c`` + ``Makefile``: the host program ``tcf_vqf_harness in.csv out.csv``
+  (CSV format of ``tcf_harness.c``, optional ``dt`` column -> ``w,x,y,z``);
+* ``vqf_report.json``: the returned report (files, settings, ``state_bytes`` = sizeof(tcf_vqf_t),
+  object sizes for the host, rv32imc and Cortex-M4F, stack of the update call chain).
+
+``build_vqf_harness(out_dir)`` compiles the harness with gcc; ``run_vqf_harness(exe, gyr, acc,
+mag)`` runs it on arrays and returns the quaternions ``(N, 4)``.
+
+Cortex-M4F sizes: ``arm_object_size`` / ``arm_stack_usage`` beside the RISC-V ones of
+``togglecf.embedded.toolchain`` (``arm-none-eabi-gcc -mcpu=cortex-m4 -mfpu=fpv4-sp-d16
+-mfloat-abi=hard -mthumb -Os``, Debian ``gcc-arm-none-eabi``); None when it is not installed.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import asdict, fields
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from togglecf.core.io import atomic_write_json, atomic_write_text
+from togglecf.embedded.cfilter import HARNESS_CFLAGS
+from togglecf.embedded.toolchain import (
+    RISCV_GCC,
+    c_float,
+    link_riscv,
+    measure_sizes,
+    object_size,
+    riscv_flags,
+    run_command,
+)
+from togglecf.filters.vqf_core import VQFCoreSettings
+
+__all__ = ["export_c_vqf", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES", "ARM_GCC",
+           "ARM_FLAGS", "arm_available", "arm_object_size", "arm_stack_usage", "call_chain_stack", "measure_vqf_state_bytes",
+           "DIAG_NAMES"]
+
+VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c")
+VQF_SOURCES = ("tcf_vqf.c",)
+ARM_GCC = "arm-none-eabi-gcc"
+ARM_SIZE = "arm-none-eabi-size"
+#: Cortex-M4F (issue 13): single-precision FPU, hard-float ABI, Thumb-2
+ARM_FLAGS = ("-mcpu=cortex-m4", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard", "-mthumb")
+#: columns of ``tcf_vqf_harness --diag`` after w,x,y,z (= VQFCoreFilter.diagnostic_names)
+DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
+_BOOL_SETTINGS = {"motion_bias_est_enabled", "rest_bias_est_enabled", "mag_dist_rejection_enabled"}
+
+_MAKEFILE = """# Host build of the exported VQF core (see tcf_vqf.h). For a firmware build, add tcf_vqf.c
+# (+ tcf_vqf.h, and tcf_vqf_config.h for TCF_VQF_PARAMS_INIT) to the project; nothing else.
+# Never add -ffast-math (tcf_vqf.c refuses it: the bad-sample tests need NaN semantics).
+CC ?= gcc
+CFLAGS ?= {cflags}
+
+tcf_vqf_harness: tcf_vqf_harness.c tcf_vqf.c tcf_vqf.h tcf_vqf_config.h
+\t$(CC) $(CFLAGS) -o $@ tcf_vqf_harness.c tcf_vqf.c -lm
+
+clean:
+\trm -f tcf_vqf_harness
+
+.PHONY: clean
+"""
+
+_SIZE_MAIN = r"""
+#include <stdio.h>
+#include "tcf_vqf.h"
+int main(void) {
+  printf("%u\n", (unsigned)sizeof(tcf_vqf_t));
+  return 0;
+}
+"""
+
+_LINK_MAIN = r"""
+#include "tcf_vqf.h"
+#include "tcf_vqf_config.h"
+volatile float tcf_in[10];
+float tcf_q[4];
+static tcf_vqf_t tcf_f;
+int main(void) {
+  static const tcf_vqf_params_t p = TCF_VQF_PARAMS_INIT;
+  float g[3], a[3], m[3];
+  int i;
+  if (tcf_vqf_init(&tcf_f, &p) != 0) return 1;
+  for (i = 0; i < 3; ++i) { g[i] = tcf_in[i]; a[i] = tcf_in[3 + i]; m[i] = tcf_in[6 + i]; }
+  tcf_vqf_update_dt(&tcf_f, g, a, m, tcf_in[9]);
+  tcf_vqf_quat(&tcf_f, tcf_q);
+  return (int)tcf_q[0];
+}
+"""
+
+
+def _template(name: str) -> str:
+    return resources.files("togglecf").joinpath("embedded", name).read_text()
+
+
+def _need_gcc(what: str) -> str:
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        raise RuntimeError(f"gcc not found on PATH: {what} needs a host C compiler (apt-get install gcc)")
+    return gcc
+
+
+# ------------------------------------------------------------------------------------------
+# Cortex-M4F toolchain (beside toolchain.py's RISC-V functions)
+# ------------------------------------------------------------------------------------------
+
+def arm_available() -> bool:
+    return shutil.which(ARM_GCC) is not None
+
+
+def arm_object_size(c_file, include_dirs=()) -> dict | None:
+    """``{text, data, bss, total}`` of ``c_file`` compiled for a Cortex-M4F with ``-Os``
+    (``arm-none-eabi-gcc`` + ``ARM_FLAGS``), or None without the cross compiler."""
+    if not arm_available():
+        return None
+    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
+    return object_size(ARM_GCC, list(ARM_FLAGS), size_tool, Path(c_file),
+                       [*map(Path, include_dirs), Path(c_file).parent])
+
+
+def call_chain_stack(compiler, flags, c_file, include_dirs, root: str) -> dict:
+    """Stack of ``root`` in ``c_file`` (``-Os -fstack-usage -fcallgraph-info=su``): ``{"frame":
+    root's own frame, "chain": the deepest chain of frames through the file's functions
+    (bytes), "path": its function names, "external": callees outside the file (libm: not
+    counted)}``. gcc's static figures; exact for functions without dynamic stack."""
+    with tempfile.TemporaryDirectory() as tmp:
+        obj = Path(tmp) / "s.o"
+        run_command([compiler, *flags, "-Os", "-fstack-usage", "-fcallgraph-info=su", "-c", c_file, "-o", obj,
+                     *[f"-I{d}" for d in include_dirs]])
+        text = (Path(tmp) / "s.ci").read_text()
+    frames, edges = {}, {}
+    for m in re.finditer(r'node:\s*\{\s*title:\s*"([^"]+)"\s*label:\s*"([^"]*)"', text):
+        name, label = m.group(1), m.group(2)
+        su = re.search(r"(\d+) bytes \((static|dynamic|dynamic,bounded)\)", label)
+        frames[name] = int(su.group(1)) if su else None
+    for m in re.finditer(r'edge:\s*\{\s*sourcename:\s*"([^"]+)"\s*targetname:\s*"([^"]+)"', text):
+        edges.setdefault(m.group(1), []).append(m.group(2))
+    if frames.get(root) is None:
+        raise RuntimeError(f"{c_file}: no stack-usage entry for {root}")
+
+    def deepest(fn, seen):
+        own = frames.get(fn)
+        if own is None:
+            return 0, []
+        best, path = 0, []
+        for callee in edges.get(fn, ()):
+            if callee not in seen:
+                b, p = deepest(callee, seen | {callee})
+                if b > best:
+                    best, path = b, p
+        return own + best, [fn, *path]
+
+    chain, path = deepest(root, {root})
+    external = sorted({c for fn in frames if frames[fn] is not None for c in edges.get(fn, ())
+                       if frames.get(c) is None})
+    return {"frame": frames[root], "chain": chain, "path": path, "external": external}
+
+
+def arm_stack_usage(c_file, include_dirs, function: str) -> dict | None:
+    """``call_chain_stack`` for the Cortex-M4F, or None without the cross compiler."""
+    if not arm_available():
+        return None
+    return call_chain_stack(ARM_GCC, list(ARM_FLAGS), c_file, [*include_dirs, Path(c_file).parent], function)
+
+
+def _riscv_stack_usage(c_file, include_dirs, function):
+    flags = riscv_flags()
+    if flags is None:
+        return None
+    return call_chain_stack(RISCV_GCC, flags, c_file, [*include_dirs, Path(c_file).parent], function)
+
+
+# ------------------------------------------------------------------------------------------
+# Export
+# ------------------------------------------------------------------------------------------
+
+def _config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
+    lines = [f"    .fs = {c_float(fs)},", f"    .use_mag = {1 if use_mag else 0},"]
+    for f in fields(settings):
+        v = getattr(settings, f.name)
+        lines.append(f"    .{f.name} = {int(bool(v)) if f.name in _BOOL_SETTINGS else c_float(v)},")
+    body = " \\\n".join(lines)
+    return f"""/* tcf_vqf_config.h: generated by togglecf.embedded.cvqf.export_c_vqf; do not edit.
+ * VQF core settings (togglecf.filters.vqf_core.VQFCoreSettings, VQF's units: deg/s, deg, s,
+ * m/s^2) and rate; tcf_vqf_init derives the per-sample coefficients from them.
+ * mode: {'9D (acc + gyr + mag)' if use_mag else '6D (acc + gyr)'}
+ */
+#ifndef TCF_VQF_CONFIG_H
+#define TCF_VQF_CONFIG_H
+
+#define TCF_VQF_FS {c_float(fs)}          /* Hz: call tcf_vqf_update once per sample at this rate */
+#define TCF_VQF_DT {c_float(1.0 / fs)}    /* s, 1 / TCF_VQF_FS */
+#define TCF_VQF_USE_MAG {1 if use_mag else 0}
+
+/* static const tcf_vqf_params_t p = TCF_VQF_PARAMS_INIT; tcf_vqf_init(&f, &p); */
+#define TCF_VQF_PARAMS_INIT {{ \\
+{body} \\
+}}
+
+#endif /* TCF_VQF_CONFIG_H */
+"""
+
+
+def measure_vqf_state_bytes(out_dir) -> int:
+    """``sizeof(tcf_vqf_t)`` with the host gcc (all members are 4 bytes: the same on rv32/ARM)."""
+    gcc = _need_gcc("measuring sizeof(tcf_vqf_t)")
+    with tempfile.TemporaryDirectory() as tmp:
+        src, exe = Path(tmp) / "size.c", Path(tmp) / "size"
+        src.write_text(_SIZE_MAIN)
+        run_command([gcc, "-std=c99", "-o", exe, src, f"-I{out_dir}"])
+        return int(run_command([exe]).strip())
+
+
+def _link_arm(out_dir: Path) -> dict | None:
+    """Size of a linked Cortex-M4F newlib-nano program calling init + update (``-Os``, unused
+    sections dropped): filter + libm float routines + C start-up. None without the toolchain."""
+    if not arm_available():
+        return None
+    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
+    with tempfile.TemporaryDirectory() as tmp:
+        main = Path(tmp) / "main.c"
+        main.write_text(_LINK_MAIN)
+        elf = Path(tmp) / "fw.elf"
+        try:
+            run_command([ARM_GCC, *ARM_FLAGS, "-Os", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
+                         "--specs=nano.specs", "--specs=nosys.specs", f"-I{out_dir}", main, out_dir / "tcf_vqf.c",
+                         "-o", elf, "-lm"])
+        except RuntimeError:
+            return None  # no newlib for the target: the object sizes still stand
+        line = run_command([size_tool, elf]).splitlines()[1].split()
+    text, data, bss = (int(v) for v in line[:3])
+    return {"text": text, "data": data, "bss": bss, "flash": text + data}
+
+
+def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, use_mag: bool = True, *,
+                 sizes: bool = True) -> dict:
+    """Write the C VQF core for rate ``fs`` [Hz] and ``settings`` (default: VQF's) into
+    ``out_dir``; returns the report (also ``out_dir/vqf_report.json``): ``files``, ``fs``,
+    ``use_mag``, ``settings``, ``state_bytes`` (sizeof(tcf_vqf_t), gcc) and, with ``sizes``,
+    ``object_sizes`` {host, riscv, arm} of ``tcf_vqf.c`` (-Os; None where a cross compiler is
+    missing), ``stack`` {riscv, arm} of the ``tcf_vqf_update`` call chain, and the linked
+    program sizes ``linked_riscv`` (picolibc) / ``linked_arm`` (newlib-nano)."""
+    if not (isinstance(fs, (int, float, np.floating)) and math.isfinite(fs) and fs > 0):
+        raise ValueError(f"fs must be a positive sampling rate in Hz, got {fs!r}")
+    fs = float(fs)
+    settings = settings if settings is not None else VQFCoreSettings()
+    if not isinstance(settings, VQFCoreSettings):
+        raise TypeError(f"settings must be VQFCoreSettings, got {type(settings).__name__}")
+    if not 1.0 / fs <= settings.max_dt:
+        raise ValueError(f"1/fs = {1 / fs:g} s exceeds max_dt = {settings.max_dt:g} s: the gyro would never be "
+                         "integrated")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = [atomic_write_text(out_dir / name, _template(name)) for name in VQF_TEMPLATES]
+    files.append(atomic_write_text(out_dir / "tcf_vqf_config.h", _config_header(fs, settings, use_mag)))
+    files.append(atomic_write_text(out_dir / "Makefile", _MAKEFILE.format(cflags=" ".join(HARNESS_CFLAGS))))
+    report = {"out_dir": str(out_dir), "files": [str(p) for p in files], "fs": fs, "use_mag": bool(use_mag),
+              "settings": asdict(settings), "coefficients": "derived in C by tcf_vqf_init (float32)",
+              "state_bytes": measure_vqf_state_bytes(out_dir)}
+    if sizes:
+        src = out_dir / "tcf_vqf.c"
+        s = measure_sizes([src], [out_dir], riscv=True)[str(src)]
+        report["object_sizes"] = {"host": s["host"], "riscv": s["riscv"], "arm": arm_object_size(src, [out_dir])}
+        report["stack"] = {"riscv": _riscv_stack_usage(src, [out_dir], "tcf_vqf_update"),
+                           "arm": arm_stack_usage(src, [out_dir], "tcf_vqf_update")}
+        report["linked_riscv"] = link_riscv([src], [out_dir], _LINK_MAIN)
+        report["linked_arm"] = _link_arm(out_dir)
+    atomic_write_json(out_dir / "vqf_report.json", report)
+    return report
+
+
+def build_vqf_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
+    """Compile ``tcf_vqf_harness`` from the sources in ``out_dir`` with the host gcc; returns the
+    executable (default ``out_dir/tcf_vqf_harness``). Raises ``RuntimeError`` with gcc's output."""
+    out_dir = Path(out_dir)
+    gcc = _need_gcc("building the C VQF harness")
+    missing = [f for f in (*VQF_TEMPLATES, "tcf_vqf_config.h") if not (out_dir / f).is_file()]
+    if missing:
+        raise FileNotFoundError(f"{out_dir}: missing {', '.join(missing)} (run export_c_vqf first)")
+    exe = Path(exe) if exe is not None else out_dir / "tcf_vqf_harness"
+    run_command([gcc, *cflags, "-o", exe, out_dir / "tcf_vqf_harness.c", out_dir / "tcf_vqf.c", f"-I{out_dir}", "-lm"])
+    return exe
+
+
+def _write_vqf_csv(path, gyr, acc, mag=None, dt=None) -> int:
+    """The harness's input CSV: gyr, acc[, mag][, dt] rounded to float32 first (what the C
+    filter gets; ``%.9g`` then round-trips exactly). Returns N."""
+    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
+    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z"]
+    if mag is not None:
+        cols.append(np.asarray(mag, np.float64))
+        names += ["mag_x", "mag_y", "mag_z"]
+    n = cols[0].shape[0]
+    for c in cols:
+        if c.shape != (n, 3):
+            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
+    if dt is not None:
+        dt = np.asarray(dt, np.float64)
+        dt = np.full(n, float(dt)) if dt.ndim == 0 else dt
+        if dt.shape != (n,):
+            raise ValueError(f"dt: expected a scalar or shape ({n},), got {dt.shape}")
+        cols.append(dt[:, None])
+        names.append("dt")
+    np.savetxt(path, np.hstack(cols).astype(np.float32), fmt="%.9g", delimiter=",", header=",".join(names),
+               comments="")
+    return n
+
+
+def run_vqf_harness(exe, gyr, acc, mag=None, *, dt=None, six_d: bool = False, no_mag: bool = False,
+                    diagnostics: bool = False):
+    """Run the compiled harness on ``(N, 3)`` arrays (``mag=None``: the filter gets ``mag =
+    NULL``, which gives the 6D result; ``six_d``: run with ``use_mag = 0``; ``no_mag``: pass
+    NULL although mag is given; ``dt``: scalar or ``(N,)`` time steps for
+    ``tcf_vqf_update_dt``). Returns the quaternions ``(N, 4)`` float64, or with
+    ``diagnostics`` ``(quat, dict)`` with ``DIAG_NAMES`` per sample and the filter's
+    ``ns_per_sample`` (clock() around the update calls)."""
+    import pandas as pd
+
+    with tempfile.TemporaryDirectory() as tmp:
+        fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
+        n = _write_vqf_csv(fin, gyr, acc, mag, dt)
+        cmd = [exe, *(["--diag", "--time"] if diagnostics else []), *(["--6d"] if six_d else []),
+               *(["--no-mag"] if no_mag else []), fin, fout]
+        res = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+        df = pd.read_csv(fout)
+    quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
+    if quat.shape != (n, 4):
+        raise RuntimeError(f"{exe} wrote {quat.shape[0]} rows for {n} samples")
+    if not diagnostics:
+        return quat
+    diag = {c: df[c].to_numpy(np.float64) for c in DIAG_NAMES}
+    m = re.search(r"([0-9.]+) ns/sample", res.stderr)
+    diag["ns_per_sample"] = float(m.group(1)) if m else math.nan
+    return quat, diag
+
+
+def report_json(report: dict) -> str:
+    """The report as indented JSON (for printing)."""
+    return json.dumps(report, indent=2, default=str)

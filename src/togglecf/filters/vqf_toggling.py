@@ -1,0 +1,243 @@
+"""The VQF core with learned, motion-dependent time constants (issue 13).
+
+The VQF core (``filters.vqf_core``) runs unchanged; per sample, the predictions
+``pred = [p_1..p_S, η̂_a (3), η̂_m (3)]`` (class probabilities of the motion state, predicted
+acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulation``):
+
+1. confidence      c = max_s p_s / Σ_s p_s;   λ = clip((c − c₀) / (1 − c₀), 0, 1)
+   (``confidence_floor`` c₀: at or below it the learned values are not trusted at all)
+2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag
+   and the motion-bias standard deviation σ_motion (a geometric blend: the probabilities
+   mix rates, not seconds); each per-state value is bounded (``TAU_ACC_RANGE`` ...), so no
+   state switches a correction off
+3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag) and
+   W_motion = σ⁴/V + σ² from the blended values, exactly as the core derives its own (B5)
+4. noise removal   a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1])
+5. the core step on (ω, a_d, m_d) with those coefficients.
+
+Steps 1–3 run only when the class probabilities change (every hop of the in-loop models), so
+the per-sample cost is the core's. Without a prediction (NaN probabilities: before the first
+full window, or a model that failed) the core's own settings are used: the *fallback*, which is
+also what low confidence moves toward. With every per-state value equal to the core's, the
+filter *is* the core (test): learning switched off.
+
+Parameters are physical (seconds, °/s), so a learned setting means the same at any rate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from togglecf.filters.toggling import N_PRED_NOISE, PredictionDrivenFilter
+from togglecf.filters.vqf_core import (
+    CoreModulation,
+    VQFCoreCoefficients,
+    VQFCoreFilter,
+    VQFCoreSettings,
+    bias_noise_w,
+    butterworth_lp_coefficients,
+    core_update,
+    gain_from_tau,
+)
+
+__all__ = ["VQFTogglingFilter", "VQFTogglingSettings", "VQFTogglingCoefficients", "vqf_toggling_step",
+           "TAU_ACC_RANGE", "TAU_MAG_RANGE", "BIAS_SIGMA_MOTION_RANGE", "MAX_STATES"]
+
+_DEG = math.pi / 180.0
+
+#: bounds [s] of a per-state τ_acc: the inclination correction is never faster than 0.3 s nor off
+TAU_ACC_RANGE = (0.3, 60.0)
+#: bounds [s] of a per-state τ_mag
+TAU_MAG_RANGE = (0.5, 200.0)
+#: bounds [°/s] of a per-state σ_motion (bias estimation in motion: never frozen, never wild)
+BIAS_SIGMA_MOTION_RANGE = (0.01, 2.0)
+#: most motion states a model may have (the state keeps the last probabilities to see changes)
+MAX_STATES = 8
+
+
+@dataclass(frozen=True)
+class VQFTogglingSettings(VQFCoreSettings):
+    """The core's settings (``VQFCoreSettings``: its values are the fallback) plus, per motion state:
+
+    Attributes:
+        states: motion-state names, in the order of the classifier's classes.
+        tau_acc_states: τ_acc [s] per state (default: the core's ``tau_acc`` for all).
+        tau_mag_states: τ_mag [s] per state (default: the core's ``tau_mag``).
+        bias_sigma_motion_states: σ_motion [°/s] per state (default: the core's).
+        confidence_floor: c₀ in [0, 1) of step 1; 0 trusts every prediction fully.
+        noise_weight_acc, noise_weight_mag: w_a, w_m in [0, 1] of step 4 (default 0: off).
+    """
+
+    states: tuple = ("static", "dynamic")
+    tau_acc_states: tuple = ()
+    tau_mag_states: tuple = ()
+    bias_sigma_motion_states: tuple = ()
+    confidence_floor: float = 0.0
+    noise_weight_acc: float = 0.0
+    noise_weight_mag: float = 0.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        n = len(self.states)
+        object.__setattr__(self, "states", tuple(self.states))
+        if not 1 <= n <= MAX_STATES:
+            raise ValueError(f"states: 1 to {MAX_STATES} motion states, got {n}")
+        for name, core, (lo, hi) in (("tau_acc_states", self.tau_acc, TAU_ACC_RANGE),
+                                     ("tau_mag_states", self.tau_mag, TAU_MAG_RANGE),
+                                     ("bias_sigma_motion_states", self.bias_sigma_motion, BIAS_SIGMA_MOTION_RANGE)):
+            vals = tuple(float(v) for v in getattr(self, name)) or (float(core),) * n
+            object.__setattr__(self, name, vals)
+            if len(vals) != n:
+                raise ValueError(f"{name} needs one value per state {self.states}, got {vals}")
+            if not all(lo <= v <= hi for v in vals):
+                raise ValueError(f"{name} must lie in [{lo}, {hi}] (a state may not switch the correction off), "
+                                 f"got {vals}")
+        if not 0.0 <= self.confidence_floor < 1.0:
+            raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
+        if not (0.0 <= self.noise_weight_acc <= 1.0 and 0.0 <= self.noise_weight_mag <= 1.0):
+            raise ValueError("noise weights must be in [0, 1]")
+        if self.tau_mag == 0.0:
+            raise ValueError("tau_mag must be > 0 s for the learned filter (its blend is in ln τ)")
+
+    @property
+    def core_settings(self) -> VQFCoreSettings:
+        """The fallback: the core's own settings (learning off)."""
+        return VQFCoreSettings(**{f.name: getattr(self, f.name) for f in fields(VQFCoreSettings)})
+
+
+#: the core's coefficients, then the learned ones (logarithms of the per-state values, rad for σ)
+VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
+    *VQFCoreCoefficients.__annotations__.items(),
+    ("n_states", int), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
+    ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
+    ("confidence_floor", float), ("noise_weight_acc", float), ("noise_weight_mag", float)])
+
+_MOD_NAMES = tuple(f"mod_{f}" for f in CoreModulation._fields)
+_STATE_NAMES = (VQFCoreFilter.state_names + _MOD_NAMES + ("tau_acc_now", "tau_mag_now", "trust_now")
+                + tuple(f"last_p{s}" for s in range(MAX_STATES)))
+O_MOD = 5 + len(VQFCoreFilter.state_names)
+O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
+O_LAST_P = O_NOW + 3
+_DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
+N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
+
+
+@njit(cache=True, inline="always")
+def _probabilities_changed(state, pred, ns):
+    """True when ``pred``'s class probabilities differ from the last ones (NaN equals NaN)."""
+    for s in range(ns):
+        a, b = pred[s], state[O_LAST_P + s]
+        if a != b and not (a != a and b != b):
+            return True
+    return False
+
+
+@njit(cache=True)
+def modulate(state, p, pred):
+    """Steps 1–3: blend the per-state values with the probabilities in ``pred`` and store the
+    resulting ``CoreModulation`` (and the probabilities) in the state. Returns (τ_acc, τ_mag, λ)."""
+    ns = p.n_states
+    total = 0.0
+    top = 0.0
+    ok = True
+    for s in range(ns):
+        v = pred[s]
+        state[O_LAST_P + s] = v
+        if not (v >= 0.0 and v < math.inf):
+            ok = False
+        else:
+            total += v
+            top = max(top, v)
+    lam = 0.0
+    la, lm, ls = p.ln_tau_acc_core, p.ln_tau_mag_core, p.ln_sigma_motion_core
+    if ok and total > 0.0:  # step 1
+        lam = min(max((top / total - p.confidence_floor) / (1.0 - p.confidence_floor), 0.0), 1.0)
+        ma, mm, msg = 0.0, 0.0, 0.0
+        for s in range(ns):  # step 2
+            w = pred[s] / total
+            ma += w * p.ln_tau_acc[s]
+            mm += w * p.ln_tau_mag[s]
+            msg += w * p.ln_sigma_motion[s]
+        la = lam * ma + (1.0 - lam) * la
+        lm = lam * mm + (1.0 - lam) * lm
+        ls = lam * msg + (1.0 - lam) * ls
+    tau_acc, tau_mag = math.exp(la), math.exp(lm)
+    b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)  # step 3
+    w_motion = bias_noise_w(math.exp(ls), p.bias_v)
+    mod = (b0, b1, b2, a1, a2, gain_from_tau(tau_mag, p.ts), w_motion,
+           w_motion * (p.bias_w_vertical / p.bias_w_motion), p.rest_th_gyr_sq, p.rest_th_acc_sq)
+    for i in range(len(mod)):
+        state[O_MOD + i] = mod[i]
+    return tau_acc, tau_mag, lam
+
+
+@njit(cache=True, inline="always")
+def _stored_modulation(state):
+    return CoreModulation(state[O_MOD], state[O_MOD + 1], state[O_MOD + 2], state[O_MOD + 3], state[O_MOD + 4],
+                          state[O_MOD + 5], state[O_MOD + 6], state[O_MOD + 7], state[O_MOD + 8], state[O_MOD + 9])
+
+
+@njit(cache=True)
+def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
+    """One sample (module docstring, steps 1–5). diag: the core's, then τ_acc [s], τ_mag [s] and
+    the trust λ in the learned values (0: fallback to the core)."""
+    p = params
+    ns = p.n_states
+    if _probabilities_changed(state, pred, ns):
+        state[O_NOW], state[O_NOW + 1], state[O_NOW + 2] = modulate(state, p, pred)
+    eta_ok = True
+    for j in range(N_PRED_NOISE):
+        if not math.isfinite(pred[ns + j]):
+            eta_ok = False
+    if eta_ok:  # step 4
+        w_a, w_m = p.noise_weight_acc, p.noise_weight_mag
+        a_d = (acc[0] - w_a * pred[ns], acc[1] - w_a * pred[ns + 1], acc[2] - w_a * pred[ns + 2])
+        m_d = (mag[0] - w_m * pred[ns + 3], mag[1] - w_m * pred[ns + 4], mag[2] - w_m * pred[ns + 5])
+    else:
+        a_d = (acc[0], acc[1], acc[2])
+        m_d = (mag[0], mag[1], mag[2])
+    core_update(state, p, _stored_modulation(state), gyr, a_d, m_d, dt, diag)  # step 5
+    diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = state[O_NOW], state[O_NOW + 1], state[O_NOW + 2]
+
+
+class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
+    """The VQF core with learned time constants, driven by per-sample predictions:
+    ``VQFTogglingFilter(fs, settings).update_batch(gyr, acc, mag, predictions=P)`` with
+    ``P (N, S + 6)``. ``predictions=None`` means "no model": NaN rows, i.e. the core itself.
+    Diagnostics: the core's, plus ``tau_acc``, ``tau_mag`` [s] and ``trust`` (λ of step 1).
+    """
+
+    name = "vqf_toggling"
+    Settings = VQFTogglingSettings
+    Coefficients = VQFTogglingCoefficients
+    state_names = _STATE_NAMES
+    diagnostic_names = _DIAG_NAMES
+    step = vqf_toggling_step
+
+    def _coefficients(self) -> dict:
+        s = self.settings
+        core = super()._coefficients()
+        return {**core, "n_states": len(s.states), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
+                "ln_tau_mag": np.log(np.array(s.tau_mag_states)),
+                "ln_sigma_motion": np.log(np.array(s.bias_sigma_motion_states) * _DEG),
+                "ln_tau_acc_core": math.log(s.tau_acc), "ln_tau_mag_core": math.log(s.tau_mag),
+                "ln_sigma_motion_core": math.log(s.bias_sigma_motion * _DEG), "confidence_floor": s.confidence_floor,
+                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
+
+    def reset(self):
+        """The core's initial state; the modulation starts at the core's own coefficients (no
+        prediction seen yet: NaN probabilities)."""
+        super().reset()
+        p = self.params
+        for i, name in enumerate(("acc_b0", "acc_b1", "acc_b2", "acc_a1", "acc_a2", "k_mag", "bias_w_motion",
+                                  "bias_w_vertical", "rest_th_gyr_sq", "rest_th_acc_sq")):
+            self.state[O_MOD + i] = getattr(p, name)
+        self.state[O_NOW:O_NOW + 3] = (self.settings.tau_acc, self.settings.tau_mag, 0.0)
+        self.state[O_LAST_P:O_LAST_P + MAX_STATES] = np.nan
+
+    def _default_pred(self, n):
+        return np.full((n, self.n_predictions), np.nan)

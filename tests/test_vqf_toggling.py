@@ -1,0 +1,109 @@
+"""The VQF core with learned time constants (filters.vqf_toggling): learning off is the core,
+the fallback and the bounds hold, update == update_batch, the in-loop models equal the
+prediction-driven filter, and `togglecf train` learns and stores its gains."""
+import numpy as np
+import pytest
+
+from togglecf.core.quaternion import angle_between
+from togglecf.filters import VQFCoreFilter
+from togglecf.filters.vqf_toggling import TAU_ACC_RANGE, VQFTogglingFilter, VQFTogglingSettings
+from togglecf.registry import VQF_TOGGLING, FilterSpec
+from togglecf.run.config import load_config
+from togglecf.run.train import run_training
+from togglecf.toggling import load_gains
+from togglecf.toggling.inloop import ModelVQFTogglingFilter
+
+STATES = ("rest", "rotation", "linear_acceleration", "vibration")
+
+
+def _predictions(n, rng, n_states=4):
+    p = rng.random((n, n_states))
+    p /= p.sum(axis=1, keepdims=True)
+    p = np.repeat(p[:: 30], 30, axis=0)[:n]  # held between "hops", as the models give them
+    return np.hstack([p, 0.1 * rng.standard_normal((n, 6))])
+
+
+def test_learning_off_is_the_core(mini_trial, rng):
+    t = mini_trial
+    core = VQFCoreFilter(t.fs).update_batch(t.gyr, t.acc, t.mag)
+    off = VQFTogglingSettings(states=STATES)  # every per-state value = the core's; noise weights 0
+    no_pred = VQFTogglingFilter(t.fs, off).update_batch(t.gyr, t.acc, t.mag)
+    assert np.array_equal(no_pred.quat, core.quat)  # NaN predictions: the core's coefficients, untouched
+    with_pred = VQFTogglingFilter(t.fs, off).update_batch(t.gyr, t.acc, t.mag, predictions=_predictions(t.n_samples, rng))
+    # the coefficients are recomputed from exp(ln τ): equal to rounding (1e-12 rad is 6e-11°)
+    assert np.max(angle_between(with_pred.quat, core.quat)) < 1e-9
+
+
+def test_fallback_on_nan_and_low_confidence(mini_trial):
+    t = mini_trial
+    s = VQFTogglingSettings(states=("a", "b"), tau_acc_states=(1.0, 20.0), tau_mag_states=(3.0, 50.0),
+                            confidence_floor=0.6)
+    n = t.n_samples
+    uncertain = np.hstack([np.full((n, 2), 0.5), np.zeros((n, 6))])  # top probability 0.5 < c₀: the core's τ
+    o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=uncertain)
+    assert np.allclose(o.diagnostics["tau_acc"], s.tau_acc) and np.allclose(o.diagnostics["tau_mag"], s.tau_mag)
+    assert np.all(o.diagnostics["trust"] == 0.0)
+    sure = np.hstack([np.tile([1.0, 0.0], (n, 1)), np.zeros((n, 6))])
+    o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=sure)
+    assert np.allclose(o.diagnostics["tau_acc"], 1.0) and np.all(o.diagnostics["trust"] == 1.0)
+    half = np.hstack([np.tile([0.8, 0.2], (n, 1)), np.zeros((n, 6))])  # λ = (0.8 − 0.6)/0.4 = 0.5
+    o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=half)
+    blend = np.exp(0.5 * (0.8 * np.log(1.0) + 0.2 * np.log(20.0)) + 0.5 * np.log(s.tau_acc))
+    assert np.allclose(o.diagnostics["tau_acc"], blend)
+    nan = np.full((n, 8), np.nan)
+    o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=nan)
+    assert np.array_equal(o.quat, VQFCoreFilter(t.fs, s.core_settings).update_batch(t.gyr, t.acc, t.mag).quat)
+
+
+def test_bounds_keep_every_correction_on():
+    with pytest.raises(ValueError, match="may not switch the correction off"):
+        VQFTogglingSettings(states=("a", "b"), tau_acc_states=(1.0, TAU_ACC_RANGE[1] * 10))
+    with pytest.raises(ValueError, match="one value per state"):
+        VQFTogglingSettings(states=("a", "b"), tau_mag_states=(9.0,))
+
+
+def test_update_equals_batch_and_state_splits(mini_trial, rng):
+    t = mini_trial
+    s = VQFTogglingSettings(states=STATES, tau_acc_states=(1.0, 3.0, 8.0, 15.0), noise_weight_acc=0.5)
+    P = _predictions(2000, rng)
+    batch = VQFTogglingFilter(t.fs, s).update_batch(t.gyr[:2000], t.acc[:2000], t.mag[:2000], predictions=P).quat
+    f = VQFTogglingFilter(t.fs, s)
+    one = np.array([f.update(t.gyr[i], t.acc[i], t.mag[i], prediction=P[i]) for i in range(2000)])
+    assert np.array_equal(one, batch)
+    g = VQFTogglingFilter(t.fs, s)
+    g.update_batch(t.gyr[:900], t.acc[:900], t.mag[:900], predictions=P[:900])
+    h = VQFTogglingFilter(t.fs, s)
+    h.set_state(g.get_state())
+    rest = h.update_batch(t.gyr[900:2000], t.acc[900:2000], t.mag[900:2000], predictions=P[900:]).quat
+    assert np.array_equal(rest, batch[900:])
+
+
+@pytest.fixture(scope="module")
+def vqf_model_dir(mini_index, tmp_path_factory):
+    """Tiny models with VQF-core gains learned (CV on 3 mini trials, one sweep of small grids)."""
+    cfg = load_config()
+    cfg["run"]["cv_folds"] = 3
+    cfg["classifier"].update(n_estimators=6, max_depth=3)
+    cfg["regressor"].update(n_estimators=3, max_depth=3)
+    cfg["gains"].update(modes=["vqf_9d"], vqf={"tau_acc": [1.0, 3.0, 8.0], "tau_mag": [9.0], "bias_sigma_motion": [0.1],
+                                             "confidence_floor": [0.0], "noise_weight_acc": [0.0],
+                                             "noise_weight_mag": [0.0], "sweeps": 1})
+    out = tmp_path_factory.mktemp("vqfmodels") / "m"
+    run_training(cfg, data_dir=mini_index.root, trials="02,07,24", out=out, cv=True, verbose=False)
+    return out
+
+
+def test_train_learns_vqf_gains_and_the_registry_runs_them(vqf_model_dir, mini_index):
+    s = load_gains(vqf_model_dir, kind=VQF_TOGGLING)
+    assert isinstance(s, VQFTogglingSettings) and all(v in (1.0, 3.0, 8.0) for v in s.tau_acc_states)
+    with pytest.raises(KeyError, match="no gains of mode .*vqf_6d"):
+        load_gains(vqf_model_dir, use_mag=False, kind=VQF_TOGGLING)
+    t = mini_index.load("07_undisturbed_fast_rotation_B")
+    f = FilterSpec(VQF_TOGGLING, models=vqf_model_dir).build(t.fs)
+    assert isinstance(f, ModelVQFTogglingFilter)
+    o = f.update_batch(t.gyr, t.acc, t.mag)
+    # the in-loop models equal the prediction-driven filter fed the predictions the loop held
+    names = [f"p_{c}" for c in f.models.class_names] + [f"eta_{k}_{ax}" for k in ("acc", "mag") for ax in "xyz"]
+    P = np.column_stack([o.diagnostics[n] for n in names])
+    ref = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=P)
+    assert np.array_equal(o.quat, ref.quat)

@@ -100,4 +100,12 @@ gamma = [1.0]
 bias_gain = [0.0, 0.001]
 mag_disturbance_scale = [0.0]
 sweeps = 1
+[gains.vqf]
+tau_acc = [1.0, 3.0]
+tau_mag = [9.0]
+bias_sigma_motion = [0.1]
+confidence_floor = [0.0]
+noise_weight_acc = [0.0]
+noise_weight_mag = [0.0]
+sweeps = 1
 """

@@ -9,7 +9,8 @@ import pytest
 
 from conftest import TINY_TRAIN_TOML
 from togglecf.run.sweep import evaluate_trials
-from togglecf.run.study import load_study_config, run_study, trial_folds
+from togglecf.learn.folds import trial_folds
+from togglecf.run.study import load_study_config, run_study
 
 pytestmark = pytest.mark.broad
 
@@ -19,7 +20,7 @@ STUDY = """
 [study]
 folds = 2
 train_config = "train.toml"
-ablations = ["toggling_only", "noise_only", "6d"]
+ablations = ["toggling_only", "noise_only", "6d", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias"]
 [baselines.cf]
 alpha = [0.0002, 0.0003, 0.01]
 [baselines.madgwick]
@@ -47,7 +48,8 @@ def test_study_report_and_no_leakage(broad_index, tmp_path):
               "plots/error_07_undisturbed_fast_rotation_B.png", "plots/timeline_24_disturbed_tapping_A.png"):
         assert (out / f).is_file(), f
     df = pd.read_csv(out / "per_trial.csv")
-    for filt in ("toggling", "cf", "madgwick", "toggling_only", "noise_only", "toggling_6d", "cf_6d"):
+    for filt in ("toggling", "cf", "madgwick", "toggling_only", "noise_only", "toggling_6d", "cf_6d", "vqf_toggling",
+                 "vqf_core_defaults", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias"):
         assert sorted(df[df["filter"] == filt]["trial"]) == sorted(res["trials"]), filt
     for fold in res["folds"]:
         model_dir = out / "folds" / f"fold{fold['fold']}" / "models"
@@ -55,6 +57,7 @@ def test_study_report_and_no_leakage(broad_index, tmp_path):
         gains = json.loads((model_dir / "gains.json").read_text())
         assert not set(fold["test"]) & set(meta["training_trials"])
         assert not set(fold["test"]) & set(gains["9d"]["trials"])
+        assert not set(fold["test"]) & set(gains["vqf_9d"]["trials"])  # the learned VQF time constants too
         # the baseline's fold TAGP is the grid point with the lowest mean over the training trials
         cf_rows = pd.read_csv(out / "per_trial.csv")
         params = json.loads(cf_rows[(cf_rows["filter"] == "cf") & (cf_rows["fold"] == fold["fold"])]["params"].iloc[0])

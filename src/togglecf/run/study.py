@@ -30,22 +30,24 @@ import numpy as np
 from togglecf.core.config import config_path
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
 from togglecf.filters.toggling import TogglingFilter
+from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.folds import trial_folds
+from togglecf.learn.labels import LabelSettings, make_targets
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, tagp, trial_errors
-from togglecf.registry import TOGGLING, FilterSpec
+from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import write_report
 from togglecf.run.config import GAIN_KEYS, load_config
-from togglecf.run.scoring import grid_points, parse_grid, run_filter, score_trials
+from togglecf.run.scoring import grid_points, parse_grid, run_filter, score_trial, score_trials
 from togglecf.run.sweep import evaluate_trials
 from togglecf.run.train import run_training
-from togglecf.toggling.gains import GainSearch, learn_gains, load_gains
+from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, load_gains
 
 __all__ = ["StudyConfig", "load_study_config", "run_study"]
 
 DEFAULT_STUDY_CONFIG = config_path("study.toml")
-ABLATIONS = ("toggling_only", "noise_only", "6d", "ransac_off")
+ABLATIONS = ("toggling_only", "noise_only", "6d", "ransac_off", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias")
 
 
 @dataclass
@@ -61,6 +63,7 @@ class StudyConfig:
         baselines_6d: the same for the 6D comparison.
         gains: the gain search of the ablations (the main gains are learned by ``togglecf train``
             with the ``[gains]`` of ``train_config``; this is the same search, read from there).
+        vqf_gains: the VQF core's learned-time-constant search (``[gains.vqf]`` of ``train_config``).
         ablations: which of ``ABLATIONS`` to run.
         jobs: worker processes.
     """
@@ -71,6 +74,7 @@ class StudyConfig:
     baselines: dict = field(default_factory=dict)
     baselines_6d: dict = field(default_factory=dict)
     gains: GainSearch = field(default_factory=GainSearch)
+    vqf_gains: VQFGainSearch = field(default_factory=VQFGainSearch)
     ablations: tuple = ABLATIONS
     jobs: int = 0
 
@@ -93,16 +97,45 @@ def load_study_config(path=None) -> StudyConfig:
 
     g = load_config(train_config)["gains"]
     search = GainSearch.from_dict({k: v for k, v in g.items() if k not in GAIN_KEYS})
+    vqf_search = VQFGainSearch.from_dict(g.get("vqf", {}))
     ablations = tuple(st.get("ablations", ABLATIONS))
     bad = set(ablations) - set(ABLATIONS)
     if bad:
         raise ValueError(f"{path}: unknown ablation(s) {sorted(bad)}; known: {list(ABLATIONS)}")
     return StudyConfig(folds=int(st.get("folds", 5)), inner_folds=int(st.get("inner_folds", 3)), train_config=train_config, baselines=grids("baselines"),
-                       baselines_6d=grids("baselines_6d"), gains=search, ablations=ablations,
+                       baselines_6d=grids("baselines_6d"), gains=search, vqf_gains=vqf_search, ablations=ablations,
                        jobs=int(st.get("jobs", 0)))
 
 
 log = logging.getLogger(__name__)
+
+
+def without_initial_rest_bias(trial, min_rest_s: float = 1.0):
+    """``trial`` with the gyro bias of its initial rest removed: the mean gyro reading before the
+    first ``movement`` sample (BROAD's annotation), when that rest lasts at least ``min_rest_s``
+    (else unchanged). The bracket of BROAD's issue 2 for Madgwick: what a rest-bias calibration
+    at start-up gives a filter that does not estimate the bias itself."""
+    moving = np.flatnonzero(trial.movement)
+    n_rest = int(moving[0]) if moving.size else trial.n_samples
+    if n_rest < min_rest_s * trial.fs:
+        return trial
+    rest = trial.gyr[:n_rest]
+    bias = np.nanmean(rest[np.all(np.isfinite(rest), axis=1)], axis=0)
+    return replace(trial, gyr=trial.gyr - bias)
+
+
+def oracle_predictions(trial, label_settings, class_names) -> np.ndarray:
+    """Per-sample predictions ``(N, S + 6)`` from the *true* motion state (the labels made from
+    the optical reference): one-hot probabilities where the label is valid, NaN elsewhere (the
+    filter then falls back to its core); zero predicted noise."""
+    targets = make_targets(trial, label_settings)
+    if tuple(targets.state_names) != tuple(class_names):
+        raise ValueError(f"label states {targets.state_names} differ from the model's classes {class_names}")
+    pred = np.zeros((trial.n_samples, len(class_names) + 6))
+    valid = targets.valid & (targets.state >= 0)
+    pred[np.flatnonzero(valid), targets.state[valid]] = 1.0
+    pred[~valid, :len(class_names)] = np.nan
+    return pred
 
 
 def _errors_series(q, t, six_d=False):
@@ -163,12 +196,20 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     grids6 = _baseline_grids(index, names, cfg.baselines_6d, False, jobs) if "6d" in cfg.ablations else {}
     timing["baseline_grids_s"] = time.perf_counter() - t0
 
+    rest_bias_grid = {}
+    if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
+        keys = grid_points(cfg.baselines["madgwick"])
+        corrected = {n: without_initial_rest_bias(loaded[n]) for n in names}
+        rest_bias_grid = {"keys": keys, "res": [{n: score_trial(corrected[n], FilterSpec("madgwick", p))[0]
+                                                 for n in names} for p in keys]}
+        log.info(f"  madgwick with the initial-rest gyro bias removed: {len(keys)} grid points x {len(names)} trials")
+
     rows = []  # one per (trial, filter): metrics + fold + params
     series = {n: {} for n in names}  # per-sample total error [deg] for the plots
     timelines = {}
     fold_info = []
     train_cfg = load_config(cfg.train_config)
-    train_cfg["gains"].update(learn=True, modes=["9d", "6d"] if "6d" in cfg.ablations else ["9d"])
+    train_cfg["gains"].update(learn=True, modes=(["9d", "6d"] if "6d" in cfg.ablations else ["9d"]) + ["vqf_9d"])
     train_cfg["run"]["cv_folds"] = cfg.inner_folds
     for k, test in enumerate(folds):
         train = [n for n in names if n not in test]
@@ -198,6 +239,13 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
             timelines[n] = {"alpha_acc": o.diagnostics["alpha_acc"],
                             "p": np.column_stack([o.diagnostics[f"p_{s}"] for s in models.class_names]),
                             "states": models.class_names}
+        gains_vqf = load_gains(model_dir, kind=VQF_TOGGLING)  # the VQF core with learned time constants
+        info["vqf_gains"] = describe_gains(gains_vqf)
+        log.info(f"  learned VQF time constants: {info['vqf_gains']}")
+        for r, o in score_trials([loaded[n] for n in test], FilterSpec(VQF_TOGGLING, models=model_dir)):
+            rows.append({"trial": r.trial, "filter": "vqf_toggling", "fold": k, "us_per_sample": r.us_per_sample,
+                         **r.errors})
+            series[r.trial]["vqf_toggling"] = _errors_series(o.quat, loaded[r.trial])
         _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, info, train_cfg, index, out)
         for filt, (keys, res) in grids9.items():
             i, params, train_err = _tagp_on(train, keys, res)
@@ -209,12 +257,23 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
                 if filt in ("madgwick", "cf"):
                     q, _ = run_filter(loaded[n], FilterSpec(filt, params))
                     series[n][filt] = _errors_series(q.quat, loaded[n])
+        if rest_bias_grid:  # BROAD issue 2's bracket: Madgwick at its fold TAGP on rest-bias-corrected gyro
+            i, params, _ = _tagp_on(train, rest_bias_grid["keys"], rest_bias_grid["res"])
+            for n in test:
+                r = rest_bias_grid["res"][i][n]
+                rows.append({"trial": n, "filter": "madgwick_rest_bias", "fold": k, "us_per_sample": r.us_per_sample,
+                             "params": json.dumps(params), **r.errors})
         for filt, (keys, res) in grids6.items():
             i, params, _ = _tagp_on(train, keys, res)
             for n in test:
                 rows.append({"trial": n, "filter": f"{filt}_6d", "fold": k, "us_per_sample": res[i][n].us_per_sample,
                              "params": json.dumps(params), **res[i][n].errors})
         fold_info.append(info)
+
+    for n in names:  # the VQF core (ours, from the paper) at VQF's defaults: the learned filter without learning
+        r, o = score_trial(loaded[n], FilterSpec("vqf_core"))
+        rows.append({"trial": n, "filter": "vqf_core_defaults", "fold": -1, "us_per_sample": r.us_per_sample,
+                     **r.errors})
 
     try:  # VQF: the external state of the art, at its defaults
         for n in names:
@@ -268,6 +327,22 @@ def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, i
                                                                      predictions=transform(preds[n]))
             rows.append({"trial": n, "filter": name, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement,
                                                                                six_d=not use_mag)})
+    no_noise_search = replace(cfg.vqf_gains, noise_weight_acc=(0.0,), noise_weight_mag=(0.0,))
+    vqf_variants = {}
+    if "vqf_taus_only" in cfg.ablations:  # the learned time constants without the noise removal
+        vqf_variants["vqf_taus_only"] = preds
+    if "vqf_oracle" in cfg.ablations:  # the true motion state as the prediction: the ceiling of a better classifier
+        label_settings = LabelSettings.from_dict({**train_cfg["labels"], "seed": train_cfg["run"]["seed"]})
+        vqf_variants["vqf_oracle"] = {n: oracle_predictions(loaded[n], label_settings, models.class_names)
+                                      for n in train + test}
+    for name, pr in vqf_variants.items():
+        s, _ = learn_gains([loaded[n] for n in train], [pr[n] for n in train], models.class_names, models.static_state,
+                           search=no_noise_search, jobs=jobs)
+        info.setdefault("ablation_gains", {})[name] = describe_gains(s)
+        for n in test:
+            t = loaded[n]
+            o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pr[n])
+            rows.append({"trial": n, "filter": name, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement)})
     if "6d" in cfg.ablations:  # gains learned in 6D by `togglecf train`
         s6 = load_gains(out / "folds" / f"fold{k}" / "models", use_mag=False)
         for n in test:

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from togglecf.embedded import cfilter
+from togglecf.embedded import cfilter, toolchain
 from togglecf.core.quaternion import angle_between
 
 if shutil.which("gcc") is None:
@@ -342,7 +342,7 @@ def test_export_errors_name_the_problem(base_model_dir, model_dir, mini_trial, t
     with pytest.raises(FileNotFoundError, match="tcf_config.h"):
         cfilter.build_harness(tmp_path)
     real_which = shutil.which
-    monkeypatch.setattr(cfilter.shutil, "which", lambda name, *a, **k: None if name == "gcc" else real_which(name))
+    monkeypatch.setattr(toolchain.shutil, "which", lambda name, *a, **k: None if name == "gcc" else real_which(name))
     with pytest.raises(RuntimeError, match="gcc not found"):
         cfilter.build_harness(tmp_path)
 

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from togglecf.core.quaternion import angle_between
-from togglecf.embedded import cvqf
+from togglecf.embedded import cvqf, toolchain
 from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings
 
 if shutil.which("gcc") is None:
@@ -221,7 +221,7 @@ def test_state_bytes_and_host_size(exported):
 def test_riscv_size_and_stack(exported):
     _, rep = exported
     if rep["object_sizes"]["riscv"] is None:
-        pytest.skip(f"{cvqf.RISCV_GCC} not installed (apt-get install gcc-riscv64-unknown-elf)")
+        pytest.skip(f"{toolchain.RISCV_GCC} not installed (apt-get install gcc-riscv64-unknown-elf)")
     rv = rep["object_sizes"]["riscv"]
     assert 0 < rv["text"] <= TEXT_MAX and rv["data"] == 0 and rv["bss"] == 0
     st = rep["stack"]["riscv"]
@@ -231,7 +231,7 @@ def test_riscv_size_and_stack(exported):
 def test_arm_cortex_m4f_size_and_stack(exported):
     _, rep = exported
     if rep["object_sizes"]["arm"] is None:
-        pytest.skip(f"{cvqf.ARM_GCC} not installed (apt-get install gcc-arm-none-eabi)")
+        pytest.skip(f"{toolchain.ARM_GCC} not installed (apt-get install gcc-arm-none-eabi)")
     arm = rep["object_sizes"]["arm"]
     assert 0 < arm["text"] <= TEXT_MAX and arm["data"] == 0 and arm["bss"] == 0
     st = rep["stack"]["arm"]
@@ -246,14 +246,14 @@ def test_compiles_warning_free(exported, target):
     if target == "host":
         cc, flags = "gcc", []
     elif target == "riscv":
-        flags = cvqf.riscv_flags()
+        flags = toolchain.riscv_flags()
         if flags is None:
-            pytest.skip(f"{cvqf.RISCV_GCC} not installed")
-        cc = cvqf.RISCV_GCC
+            pytest.skip(f"{toolchain.RISCV_GCC} not installed")
+        cc = toolchain.RISCV_GCC
     else:
-        if not cvqf.arm_available():
-            pytest.skip(f"{cvqf.ARM_GCC} not installed")
-        cc, flags = cvqf.ARM_GCC, list(cvqf.ARM_FLAGS)
+        if not toolchain.arm_available():
+            pytest.skip(f"{toolchain.ARM_GCC} not installed")
+        cc, flags = toolchain.ARM_GCC, list(toolchain.ARM_FLAGS)
     res = subprocess.run([cc, *flags, *WARN_FLAGS, "-Os", "-c", str(out / "tcf_vqf.c"), "-o", str(out / "w.o"),
                           f"-I{out}"], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
@@ -289,8 +289,8 @@ def test_init_validates_settings(exported, tmp_path):
     out, _ = exported
     src, exe = tmp_path / "probe.c", tmp_path / "probe"
     src.write_text(_INIT_PROBE)
-    cvqf.run_command(["gcc", "-std=c99", "-o", exe, src, out / "tcf_vqf.c", f"-I{out}", "-lm"])
-    assert cvqf.run_command([exe]).split() == ["0", "-1", "-1", "-1", "-1"]
+    toolchain.run_command(["gcc", "-std=c99", "-o", exe, src, out / "tcf_vqf.c", f"-I{out}", "-lm"])
+    assert toolchain.run_command([exe]).split() == ["0", "-1", "-1", "-1", "-1"]
 
 
 def test_config_header_carries_the_settings(tmp_path):

@@ -24,18 +24,24 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import shutil
 import subprocess
 import tempfile
 from dataclasses import asdict
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from togglecf.core.io import atomic_write_json, atomic_write_text, file_sha256
 from togglecf.embedded.forest_export import forest_to_c
-from togglecf.embedded.toolchain import c_float, link_riscv, measure_sizes
+from togglecf.embedded.toolchain import (
+    c_float,
+    link_riscv,
+    measure_sizes,
+    need_gcc,
+    run_harness_command,
+    template,
+    write_imu_csv,
+)
 from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length, window_length
 from togglecf.toggling.gains import GAINS_FILE
 from togglecf.toggling.load import load_toggling_filter
@@ -62,15 +68,8 @@ def state_bytes_formula(window: int, n_classes: int) -> int:
     return 4 * (52 + 16 * int(window) + int(n_classes))
 
 
-def _template(name: str) -> str:
-    return resources.files("togglecf").joinpath("embedded", name).read_text()
 
 
-def _need_gcc(what: str) -> str:
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        raise RuntimeError(f"gcc not found on PATH: {what} needs a host C compiler (apt-get install gcc)")
-    return gcc
 
 
 def _c_string(s: str) -> str:
@@ -182,7 +181,7 @@ def _check_feature_layout():
 
 
 def _measure_state_bytes(out_dir: Path) -> tuple[int, int]:
-    gcc = _need_gcc("measuring sizeof(tcf_filter_t)")
+    gcc = need_gcc("measuring sizeof(tcf_filter_t)")
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "size.c"
         src.write_text(_SIZE_MAIN)
@@ -242,7 +241,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     out_dir.mkdir(parents=True, exist_ok=True)
     files = []
     for name in TEMPLATES:
-        files.append(atomic_write_text(out_dir / name, _template(name)))
+        files.append(atomic_write_text(out_dir / name, template(name)))
     files.append(atomic_write_text(out_dir / "tcf_config.h", _config_header(
         model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, settings=s, class_names=classes,
         static_index=s.states.index(s.static_state), window=L, hop=hop, feat_params=filt._features.params,
@@ -279,7 +278,7 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     """Compile ``tcf_harness`` from the sources in ``out_dir`` with the host gcc; returns the
     executable (default ``out_dir/tcf_harness``). Raises ``RuntimeError`` with gcc's output."""
     out_dir = Path(out_dir)
-    gcc = _need_gcc("building the C filter's harness")
+    gcc = need_gcc("building the C filter's harness")
     missing = [f for f in ("tcf_harness.c", *FILTER_SOURCES, "tcf_filter.h", "tcf_forest.h", "tcf_config.h")
                if not (out_dir / f).is_file()]
     if missing:
@@ -293,25 +292,8 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     return exe
 
 
-def _write_imu_csv(path, gyr, acc, mag=None) -> int:
-    """The harness's input CSV (header, 6 or 9 columns, exact float64 digits); returns N."""
-    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
-    if mag is not None:
-        cols.append(np.asarray(mag, np.float64))
-    n = cols[0].shape[0]
-    for c in cols:
-        if c.shape != (n, 3):
-            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
-    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"][:3 * len(cols)]
-    np.savetxt(path, np.hstack(cols), fmt="%.17g", delimiter=",", header=",".join(names), comments="")
-    return n
 
 
-def _run_harness_cmd(exe, cmd):
-    res = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
-    if res.returncode != 0:
-        raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
-    return res
 
 
 def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False, predictions=None):
@@ -326,7 +308,7 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
 
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = _write_imu_csv(fin, gyr, acc, mag)
+        n = write_imu_csv(fin, gyr, acc, mag)
         extra = []
         if predictions is not None:
             P = np.asarray(predictions, np.float64)
@@ -338,7 +320,7 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
             extra = ["--pred", str(fpred)]
         cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
                str(fin), str(fout)]
-        res = _run_harness_cmd(exe, cmd)
+        res = run_harness_command(exe, cmd)
         df = pd.read_csv(fout)
     quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
     if quat.shape != (n, 4):
@@ -356,7 +338,7 @@ def harness_features(exe, gyr, acc, mag=None):
     compare with ``features.compute_features`` (``tcf_harness --features``)."""
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout, ffeat = Path(tmp) / "in.csv", Path(tmp) / "out.csv", Path(tmp) / "feat.csv"
-        _write_imu_csv(fin, gyr, acc, mag)
-        _run_harness_cmd(exe, [str(exe), "--features", str(ffeat), str(fin), str(fout)])
+        write_imu_csv(fin, gyr, acc, mag)
+        run_harness_command(exe, [str(exe), "--features", str(ffeat), str(fin), str(fout)])
         F = np.loadtxt(ffeat, delimiter=",", ndmin=2)
     return F[:, 0].astype(np.int64), F[:, 1:]

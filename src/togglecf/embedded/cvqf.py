@@ -30,10 +30,8 @@ import json
 import math
 import re
 import shutil
-import subprocess
 import tempfile
 from dataclasses import asdict, fields
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -41,26 +39,31 @@ import numpy as np
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.embedded.cfilter import HARNESS_CFLAGS
 from togglecf.embedded.toolchain import (
+    ARM_FLAGS,
+    ARM_GCC,
+    ARM_SIZE,
     RISCV_GCC,
+    arm_available,
+    arm_object_size,
+    arm_stack_usage,
     c_float,
+    call_chain_stack,
     link_riscv,
     measure_sizes,
-    object_size,
+    need_gcc,
     riscv_flags,
     run_command,
+    run_harness_command,
+    template,
+    write_imu_csv,
 )
 from togglecf.filters.vqf_core import VQFCoreSettings
 
-__all__ = ["export_c_vqf", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES", "ARM_GCC",
-           "ARM_FLAGS", "arm_available", "arm_object_size", "arm_stack_usage", "call_chain_stack", "measure_vqf_state_bytes",
-           "DIAG_NAMES"]
+__all__ = ["export_c_vqf", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES",
+           "measure_vqf_state_bytes", "DIAG_NAMES"]
 
 VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c")
 VQF_SOURCES = ("tcf_vqf.c",)
-ARM_GCC = "arm-none-eabi-gcc"
-ARM_SIZE = "arm-none-eabi-size"
-#: Cortex-M4F (issue 13): single-precision FPU, hard-float ABI, Thumb-2
-ARM_FLAGS = ("-mcpu=cortex-m4", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard", "-mthumb")
 #: columns of ``tcf_vqf_harness --diag`` after w,x,y,z (= VQFCoreFilter.diagnostic_names)
 DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
 _BOOL_SETTINGS = {"motion_bias_est_enabled", "rest_bias_est_enabled", "mag_dist_rejection_enabled"}
@@ -108,78 +111,13 @@ int main(void) {
 """
 
 
-def _template(name: str) -> str:
-    return resources.files("togglecf").joinpath("embedded", name).read_text()
 
 
-def _need_gcc(what: str) -> str:
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        raise RuntimeError(f"gcc not found on PATH: {what} needs a host C compiler (apt-get install gcc)")
-    return gcc
 
 
 # ------------------------------------------------------------------------------------------
 # Cortex-M4F toolchain (beside toolchain.py's RISC-V functions)
 # ------------------------------------------------------------------------------------------
-
-def arm_available() -> bool:
-    return shutil.which(ARM_GCC) is not None
-
-
-def arm_object_size(c_file, include_dirs=()) -> dict | None:
-    """``{text, data, bss, total}`` of ``c_file`` compiled for a Cortex-M4F with ``-Os``
-    (``arm-none-eabi-gcc`` + ``ARM_FLAGS``), or None without the cross compiler."""
-    if not arm_available():
-        return None
-    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
-    return object_size(ARM_GCC, list(ARM_FLAGS), size_tool, Path(c_file),
-                       [*map(Path, include_dirs), Path(c_file).parent])
-
-
-def call_chain_stack(compiler, flags, c_file, include_dirs, root: str) -> dict:
-    """Stack of ``root`` in ``c_file`` (``-Os -fstack-usage -fcallgraph-info=su``): ``{"frame":
-    root's own frame, "chain": the deepest chain of frames through the file's functions
-    (bytes), "path": its function names, "external": callees outside the file (libm: not
-    counted)}``. gcc's static figures; exact for functions without dynamic stack."""
-    with tempfile.TemporaryDirectory() as tmp:
-        obj = Path(tmp) / "s.o"
-        run_command([compiler, *flags, "-Os", "-fstack-usage", "-fcallgraph-info=su", "-c", c_file, "-o", obj,
-                     *[f"-I{d}" for d in include_dirs]])
-        text = (Path(tmp) / "s.ci").read_text()
-    frames, edges = {}, {}
-    for m in re.finditer(r'node:\s*\{\s*title:\s*"([^"]+)"\s*label:\s*"([^"]*)"', text):
-        name, label = m.group(1), m.group(2)
-        su = re.search(r"(\d+) bytes \((static|dynamic|dynamic,bounded)\)", label)
-        frames[name] = int(su.group(1)) if su else None
-    for m in re.finditer(r'edge:\s*\{\s*sourcename:\s*"([^"]+)"\s*targetname:\s*"([^"]+)"', text):
-        edges.setdefault(m.group(1), []).append(m.group(2))
-    if frames.get(root) is None:
-        raise RuntimeError(f"{c_file}: no stack-usage entry for {root}")
-
-    def deepest(fn, seen):
-        own = frames.get(fn)
-        if own is None:
-            return 0, []
-        best, path = 0, []
-        for callee in edges.get(fn, ()):
-            if callee not in seen:
-                b, p = deepest(callee, seen | {callee})
-                if b > best:
-                    best, path = b, p
-        return own + best, [fn, *path]
-
-    chain, path = deepest(root, {root})
-    external = sorted({c for fn in frames if frames[fn] is not None for c in edges.get(fn, ())
-                       if frames.get(c) is None})
-    return {"frame": frames[root], "chain": chain, "path": path, "external": external}
-
-
-def arm_stack_usage(c_file, include_dirs, function: str) -> dict | None:
-    """``call_chain_stack`` for the Cortex-M4F, or None without the cross compiler."""
-    if not arm_available():
-        return None
-    return call_chain_stack(ARM_GCC, list(ARM_FLAGS), c_file, [*include_dirs, Path(c_file).parent], function)
 
 
 def _riscv_stack_usage(c_file, include_dirs, function):
@@ -222,7 +160,7 @@ def _config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
 
 def measure_vqf_state_bytes(out_dir) -> int:
     """``sizeof(tcf_vqf_t)`` with the host gcc (all members are 4 bytes: the same on rv32/ARM)."""
-    gcc = _need_gcc("measuring sizeof(tcf_vqf_t)")
+    gcc = need_gcc("measuring sizeof(tcf_vqf_t)")
     with tempfile.TemporaryDirectory() as tmp:
         src, exe = Path(tmp) / "size.c", Path(tmp) / "size"
         src.write_text(_SIZE_MAIN)
@@ -270,7 +208,7 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
                          "integrated")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    files = [atomic_write_text(out_dir / name, _template(name)) for name in VQF_TEMPLATES]
+    files = [atomic_write_text(out_dir / name, template(name)) for name in VQF_TEMPLATES]
     files.append(atomic_write_text(out_dir / "tcf_vqf_config.h", _config_header(fs, settings, use_mag)))
     files.append(atomic_write_text(out_dir / "Makefile", _MAKEFILE.format(cflags=" ".join(HARNESS_CFLAGS))))
     report = {"out_dir": str(out_dir), "files": [str(p) for p in files], "fs": fs, "use_mag": bool(use_mag),
@@ -292,7 +230,7 @@ def build_vqf_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     """Compile ``tcf_vqf_harness`` from the sources in ``out_dir`` with the host gcc; returns the
     executable (default ``out_dir/tcf_vqf_harness``). Raises ``RuntimeError`` with gcc's output."""
     out_dir = Path(out_dir)
-    gcc = _need_gcc("building the C VQF harness")
+    gcc = need_gcc("building the C VQF harness")
     missing = [f for f in (*VQF_TEMPLATES, "tcf_vqf_config.h") if not (out_dir / f).is_file()]
     if missing:
         raise FileNotFoundError(f"{out_dir}: missing {', '.join(missing)} (run export_c_vqf first)")
@@ -301,28 +239,6 @@ def build_vqf_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     return exe
 
 
-def _write_vqf_csv(path, gyr, acc, mag=None, dt=None) -> int:
-    """The harness's input CSV: gyr, acc[, mag][, dt] rounded to float32 first (what the C
-    filter gets; ``%.9g`` then round-trips exactly). Returns N."""
-    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
-    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z"]
-    if mag is not None:
-        cols.append(np.asarray(mag, np.float64))
-        names += ["mag_x", "mag_y", "mag_z"]
-    n = cols[0].shape[0]
-    for c in cols:
-        if c.shape != (n, 3):
-            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
-    if dt is not None:
-        dt = np.asarray(dt, np.float64)
-        dt = np.full(n, float(dt)) if dt.ndim == 0 else dt
-        if dt.shape != (n,):
-            raise ValueError(f"dt: expected a scalar or shape ({n},), got {dt.shape}")
-        cols.append(dt[:, None])
-        names.append("dt")
-    np.savetxt(path, np.hstack(cols).astype(np.float32), fmt="%.9g", delimiter=",", header=",".join(names),
-               comments="")
-    return n
 
 
 def run_vqf_harness(exe, gyr, acc, mag=None, *, dt=None, six_d: bool = False, no_mag: bool = False,
@@ -337,12 +253,10 @@ def run_vqf_harness(exe, gyr, acc, mag=None, *, dt=None, six_d: bool = False, no
 
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = _write_vqf_csv(fin, gyr, acc, mag, dt)
+        n = write_imu_csv(fin, gyr, acc, mag, dt, float32=True)
         cmd = [exe, *(["--diag", "--time"] if diagnostics else []), *(["--6d"] if six_d else []),
                *(["--no-mag"] if no_mag else []), fin, fout]
-        res = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+        res = run_harness_command(exe, cmd)
         df = pd.read_csv(fout)
     quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
     if quat.shape != (n, 4):

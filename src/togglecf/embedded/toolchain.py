@@ -4,21 +4,29 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import subprocess
 import sys
 import tempfile
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["RISCV_GCC", "RISCV_FLAGS", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
+__all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
+           "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
            "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv"]
 
 RISCV_GCC = "riscv64-unknown-elf-gcc"
 
 
 RISCV_FLAGS = ("-march=rv32imc", "-mabi=ilp32")
+
+ARM_GCC = "arm-none-eabi-gcc"
+ARM_SIZE = "arm-none-eabi-size"
+#: Cortex-M4F (issue 13): single-precision FPU, hard-float ABI, Thumb-2
+ARM_FLAGS = ("-mcpu=cortex-m4", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard", "-mthumb")
 
 
 @contextlib.contextmanager
@@ -138,3 +146,111 @@ def link_riscv(c_files, include_dirs, main_source: str, defines=()) -> dict | No
         line = run_command([rv_size, elf]).splitlines()[1].split()
     text, data, bss = (int(v) for v in line[:3])
     return {"text": text, "data": data, "bss": bss, "flash": text + data}
+
+
+def arm_available() -> bool:
+    return shutil.which(ARM_GCC) is not None
+
+
+def arm_object_size(c_file, include_dirs=()) -> dict | None:
+    """``{text, data, bss, total}`` of ``c_file`` compiled for a Cortex-M4F with ``-Os``
+    (``arm-none-eabi-gcc`` + ``ARM_FLAGS``), or None without the cross compiler."""
+    if not arm_available():
+        return None
+    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
+    return object_size(ARM_GCC, list(ARM_FLAGS), size_tool, Path(c_file),
+                       [*map(Path, include_dirs), Path(c_file).parent])
+
+
+def call_chain_stack(compiler, flags, c_file, include_dirs, root: str) -> dict:
+    """Stack of ``root`` in ``c_file`` (``-Os -fstack-usage -fcallgraph-info=su``): ``{"frame":
+    root's own frame, "chain": the deepest chain of frames through the file's functions
+    (bytes), "path": its function names, "external": callees outside the file (libm: not
+    counted)}``. gcc's static figures; exact for functions without dynamic stack."""
+    with tempfile.TemporaryDirectory() as tmp:
+        obj = Path(tmp) / "s.o"
+        run_command([compiler, *flags, "-Os", "-fstack-usage", "-fcallgraph-info=su", "-c", c_file, "-o", obj,
+                     *[f"-I{d}" for d in include_dirs]])
+        text = (Path(tmp) / "s.ci").read_text()
+    frames, edges = {}, {}
+    for m in re.finditer(r'node:\s*\{\s*title:\s*"([^"]+)"\s*label:\s*"([^"]*)"', text):
+        name, label = m.group(1), m.group(2)
+        su = re.search(r"(\d+) bytes \((static|dynamic|dynamic,bounded)\)", label)
+        frames[name] = int(su.group(1)) if su else None
+    for m in re.finditer(r'edge:\s*\{\s*sourcename:\s*"([^"]+)"\s*targetname:\s*"([^"]+)"', text):
+        edges.setdefault(m.group(1), []).append(m.group(2))
+    if frames.get(root) is None:
+        raise RuntimeError(f"{c_file}: no stack-usage entry for {root}")
+
+    def deepest(fn, seen):
+        own = frames.get(fn)
+        if own is None:
+            return 0, []
+        best, path = 0, []
+        for callee in edges.get(fn, ()):
+            if callee not in seen:
+                b, p = deepest(callee, seen | {callee})
+                if b > best:
+                    best, path = b, p
+        return own + best, [fn, *path]
+
+    chain, path = deepest(root, {root})
+    external = sorted({c for fn in frames if frames[fn] is not None for c in edges.get(fn, ())
+                       if frames.get(c) is None})
+    return {"frame": frames[root], "chain": chain, "path": path, "external": external}
+
+
+def arm_stack_usage(c_file, include_dirs, function: str) -> dict | None:
+    """``call_chain_stack`` for the Cortex-M4F, or None without the cross compiler."""
+    if not arm_available():
+        return None
+    return call_chain_stack(ARM_GCC, list(ARM_FLAGS), c_file, [*include_dirs, Path(c_file).parent], function)
+
+
+def template(name: str) -> str:
+    """A C template shipped in the package (``togglecf/embedded/<name>``)."""
+    return resources.files("togglecf").joinpath("embedded", name).read_text()
+
+
+def need_gcc(what: str) -> str:
+    """Path of the host gcc, or a clear error naming what needs it."""
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        raise RuntimeError(f"gcc not found on PATH: {what} needs a host C compiler (apt-get install gcc)")
+    return gcc
+
+
+def run_harness_command(exe, cmd):
+    """Run a compiled host harness; a failure raises with its stderr."""
+    res = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
+    return res
+
+
+def write_imu_csv(path, gyr, acc, mag=None, dt=None, float32: bool = False) -> int:
+    """The C harnesses' input CSV: a header, then gyr, acc[, mag][, dt] per row; returns N.
+    ``float32``: values rounded to float32 first (what a float32 filter gets; ``%.9g`` then
+    round-trips exactly), else exact float64 digits."""
+    cols = [np.asarray(gyr, np.float64), np.asarray(acc, np.float64)]
+    names = ["gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z"]
+    if mag is not None:
+        cols.append(np.asarray(mag, np.float64))
+        names += ["mag_x", "mag_y", "mag_z"]
+    n = cols[0].shape[0]
+    for c in cols:
+        if c.shape != (n, 3):
+            raise ValueError(f"gyr, acc, mag must be (N, 3) with the same N, got {[x.shape for x in cols]}")
+    if dt is not None:
+        dt = np.asarray(dt, np.float64)
+        dt = np.full(n, float(dt)) if dt.ndim == 0 else dt
+        if dt.shape != (n,):
+            raise ValueError(f"dt: expected a scalar or shape ({n},), got {dt.shape}")
+        cols.append(dt[:, None])
+        names.append("dt")
+    data = np.hstack(cols)
+    if float32:
+        np.savetxt(path, data.astype(np.float32), fmt="%.9g", delimiter=",", header=",".join(names), comments="")
+    else:
+        np.savetxt(path, data, fmt="%.17g", delimiter=",", header=",".join(names), comments="")
+    return n

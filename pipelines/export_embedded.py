@@ -1,13 +1,15 @@
 """The embedded export for microcontrollers: pruned models within a flash budget, as C.
 
-Runs (or resumes) the pruning sweep of models/default in build/embedded/default/sweep (every
-point judged by the toggling filter's held-out BROAD error, as the study), picks the most
-accurate point whose trees fit in 32 KB of rv32imc -Os object code (the ESP32-C3), trains it
-on the same trials, and writes build/embedded/default/{models,array,tl2cgen,filter}/ plus
-export_report.json. Train models/default first (`togglecf train`). Any option of
-`togglecf export` can be appended, e.g. `--max-bytes 65536`.
+Trains the pruned point for 32 KB of rv32imc -Os object code (the ESP32-C3) on the trials of
+models/default and writes build/embedded/default/{models,array,tl2cgen,filter}/ plus
+export_report.json: the best point of the pruning sweep in build/embedded/default/sweep when one
+is there, else the default point (10 trees x depth 4, all features: the sweep's choice for
+32 KB, ``togglecf.run.prune.DEFAULT_EXPORT_POINT``); minutes. Add ``--full-sweep`` to run (or
+resume) the sweep first (~30 min on 2 cores; every point judged by the toggling filter's held-out
+BROAD error, as the study). Train models/default first (`togglecf train`). Any option of
+`togglecf export` can be appended, e.g. `--max-bytes 65536 --full-sweep`.
 
-    python pipelines/export_embedded.py [--models models/default] [--out build/embedded/default] [...]
+    python pipelines/export_embedded.py [--models models/default] [--out build/embedded/default] [--full-sweep] [...]
 """
 import sys
 

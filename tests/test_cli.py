@@ -4,9 +4,9 @@ import json
 import pandas as pd
 import pytest
 
-from togglecf.cli.main import main
 from conftest import TINY_TRAIN_TOML
-from test_data import make_broad_dir
+from test_data import make_broad_dir, synthetic_fields, write_hdf5
+from togglecf.cli.main import main
 
 
 def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
@@ -34,6 +34,62 @@ def test_errors_are_one_clear_line(tmp_path, capsys):
     assert "alpha must be in [0, 1]" in capsys.readouterr().err
     assert main(["evaluate", "--filter", "cf", "--trials", "09", "--data", str(data)]) == 1
     assert "not listed" in capsys.readouterr().err
+
+
+def _bad_dir(tmp_path):
+    """01_a fine but for a NaN burst (5 %), 02_b too short (10 samples), 03_c 20 % NaN in acc."""
+    names = ["01_a", "02_b", "03_c"]
+    data = make_broad_dir(tmp_path / "b", [], names)
+    f = synthetic_fields(600, seed=1)
+    f["imu_acc"][300:330] = float("nan")
+    write_hdf5(data / "01_a.hdf5", f)
+    write_hdf5(data / "02_b.hdf5", {k: v[:10] for k, v in synthetic_fields(600, seed=2).items()})
+    f = synthetic_fields(600, seed=3)
+    f["imu_acc"][100:220] = float("nan")
+    write_hdf5(data / "03_c.hdf5", f)
+    return data
+
+
+def test_failed_trials_one_line_each_and_invalid_samples_counted(tmp_path, capsys):
+    data = _bad_dir(tmp_path)
+    out = tmp_path / "report"
+    rc = main(["evaluate", "--filter", "madgwick", "--data", str(data), "--out", str(out), "--jobs", "1"])
+    assert rc == 3  # tables written for 01_a; the failures listed
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    short = [ln for ln in lines if "02_b.hdf5" in ln]
+    nan = [ln for ln in lines if "03_c.hdf5" in ln]
+    assert short == [f"  {data / '02_b.hdf5'}: field 'imu_gyr': 10 samples (0.03 s at 285.7 Hz) is too short: at "
+                     "least 285 samples (1 s, togglecf.data.broad.MIN_DURATION_S) are needed to evaluate a filter"]
+    assert nan == [f"  {data / '03_c.hdf5'}: field 'acc': 120 of 600 samples (20.0%) are not finite (NaN/inf; first "
+                   "at index 100); at most 10% may be (togglecf.data.broad.MAX_INVALID_FRACTION)"]
+    assert f"note: {data / '01_a.hdf5'}: 30 IMU sample(s) not finite (acc 30); the filter skipped them " \
+           "(a trial is refused above 10% per field)" in lines
+    assert "{" not in err and "DataError" not in err  # no dict repr, no exception class names
+    per_trial = pd.read_csv(out / "per_trial.csv", index_col=0)
+    assert list(per_trial.index) == ["01_a"] and per_trial.loc["01_a", "n_invalid"] == 30
+    assert per_trial["total"].notna().all()
+    res = json.loads((out / "results.json").read_text())
+    assert res["invalid_samples"] == {"01_a": {"gyr": 0, "acc": 30, "mag": 0, "samples": 30}}
+    assert res["per_trial"]["01_a"]["n_invalid"] == 30 and res["max_invalid_fraction"] == 0.1
+    assert set(res["failed_trials"]) == {"02_b", "03_c"}
+
+
+def test_all_trials_failed_is_an_error_with_one_line_per_trial(tmp_path, capsys):
+    data = _bad_dir(tmp_path)
+    for cmd in (["evaluate", "--filter", "cf"], ["tune", "--filter", "cf", "--grid", "alpha=0.01,0.02"]):
+        assert main([*cmd, "--data", str(data), "--trials", "02,03", "--jobs", "1"]) == 1
+        err = capsys.readouterr().err
+        assert "{" not in err and "Traceback" not in err
+        assert sum("02_b.hdf5: field 'imu_gyr': 10 samples" in ln for ln in err.splitlines()) == 1
+        assert sum("03_c.hdf5: field 'acc': 120 of 600 samples (20.0%)" in ln for ln in err.splitlines()) == 1
+    # evaluate: the lines, then one error line; tune: the error names the failures, one per line
+    assert main(["evaluate", "--filter", "cf", "--data", str(data), "--trials", "02,03", "--jobs", "1"]) == 1
+    assert "togglecf evaluate: error: no trial could be evaluated: all 2 selected trial(s) failed (listed above)" in \
+        capsys.readouterr().err
+    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(data), "--trials", "02,03",
+                 "--jobs", "1"]) == 1
+    assert "togglecf tune: error: no trial was evaluated at every grid point; 2 failed:\n  " in capsys.readouterr().err
 
 
 @pytest.mark.broad

@@ -7,7 +7,18 @@ import numpy as np
 import pytest
 import scipy.io
 
-from togglecf.data.broad import (DataError, DataNotFoundError, DatasetIndex, Trial, load_trial, resolve_data_dir)
+from togglecf.data.broad import (
+    MAX_INVALID_FRACTION,
+    MIN_DURATION_S,
+    DataError,
+    DataNotFoundError,
+    DatasetIndex,
+    Trial,
+    check_evaluable,
+    load_trial,
+    min_samples,
+    resolve_data_dir,
+)
 from togglecf.simulate import imu_from_orientation, random_smooth_trajectory
 
 FS = 285.7142857142857
@@ -79,12 +90,64 @@ def test_length_mismatch_named(tmp_path):
         load_trial(tmp_path / "t.hdf5")
 
 
-def test_non_finite_imu_named(tmp_path):
+def test_non_finite_imu_samples_accepted_and_counted(tmp_path):
+    """A NaN burst is kept (the filters skip bad samples) and counted per field."""
     fields = synthetic_fields()
     fields["imu_gyr"][42, 1] = np.inf
+    fields["imu_acc"][100:130] = np.nan
+    fields["imu_mag"][100:105, 0] = np.nan  # same samples as acc: counted once in n_invalid
     write_hdf5(tmp_path / "t.hdf5", fields)
-    with pytest.raises(DataError, match="field 'gyr': 1 non-finite samples \\(first at index 42\\)"):
+    t = load_trial(tmp_path / "t.hdf5")
+    assert t.invalid == {"gyr": 1, "acc": 30, "mag": 5} and t.n_invalid == 31
+    assert t.slice(0, 110).invalid == {"gyr": 1, "acc": 10, "mag": 5}
+    assert load_trial(tmp_path / "t.hdf5").slice(200, 600).n_invalid == 0
+
+
+def test_too_many_non_finite_samples_refused(tmp_path):
+    """More than MAX_INVALID_FRACTION of one field non-finite: refused, naming file, field, fraction."""
+    fields = synthetic_fields()  # 600 samples: 10 % = 60
+    fields["imu_mag"][200:260] = np.nan
+    write_hdf5(tmp_path / "ok.hdf5", fields)
+    assert load_trial(tmp_path / "ok.hdf5").invalid["mag"] == 60  # exactly 10 %: accepted
+    fields["imu_mag"][260] = np.nan
+    write_hdf5(tmp_path / "t.hdf5", fields)
+    with pytest.raises(DataError) as exc:
         load_trial(tmp_path / "t.hdf5")
+    msg = str(exc.value)
+    assert msg == (f"{tmp_path / 't.hdf5'}: field 'mag': 61 of 600 samples (10.2%) are not finite (NaN/inf; first "
+                   "at index 200); at most 10% may be (togglecf.data.broad.MAX_INVALID_FRACTION)")
+    assert MAX_INVALID_FRACTION == 0.10
+
+
+def test_too_short_trial_refused(tmp_path):
+    """A recording shorter than MIN_DURATION_S is refused at load time, naming file and minimum."""
+    fields = {k: v[:10] for k, v in synthetic_fields().items()}
+    write_hdf5(tmp_path / "short.hdf5", fields)
+    with pytest.raises(DataError) as exc:
+        load_trial(tmp_path / "short.hdf5")
+    assert str(exc.value) == (f"{tmp_path / 'short.hdf5'}: field 'imu_gyr': 10 samples (0.03 s at 285.7 Hz) is too "
+                              "short: at least 285 samples (1 s, togglecf.data.broad.MIN_DURATION_S) are needed to "
+                              "evaluate a filter")
+    assert min_samples(FS) == 285 and MIN_DURATION_S == 1.0
+    # in memory (a slice): refused when it is to be evaluated
+    t = load_trial_ok(tmp_path)
+    with pytest.raises(DataError, match=r"10 samples \(0\.03 s at 285\.7 Hz\) is too short: at least 285"):
+        check_evaluable(t.slice(0, 10))
+    # long enough but nothing to score: no movement sample with ground truth
+    with pytest.raises(DataError, match="no sample is both marked as movement and has ground truth"):
+        check_evaluable(t.slice(0, 300).__class__(**{**_trial_kwargs(t.slice(0, 300)),
+                                                      "movement": np.zeros(300, bool)}))
+    assert check_evaluable(t) is t
+
+
+def load_trial_ok(tmp_path):
+    write_hdf5(tmp_path / "ok.hdf5", synthetic_fields())
+    return load_trial(tmp_path / "ok.hdf5")
+
+
+def _trial_kwargs(t):
+    return dict(name=t.name, fs=t.fs, gyr=t.gyr, acc=t.acc, mag=t.mag, opt_quat=t.opt_quat, opt_pos=t.opt_pos,
+                movement=t.movement, source=t.source, check_units=False)
 
 
 def test_acc_in_g_detected(tmp_path):

@@ -11,10 +11,11 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from matplotlib.colors import to_rgb  # noqa: E402
 
-from togglecf.cli.plot import add_plot_parser  # noqa: E402
-from togglecf.report import plots  # noqa: E402
-from togglecf.core import quaternion as quat  # noqa: E402
 from togglecf import simulate as sim  # noqa: E402
+from togglecf.cli.plot import add_plot_parser  # noqa: E402
+from togglecf.core import quaternion as quat  # noqa: E402
+from togglecf.report import plots, study_report  # noqa: E402
+from togglecf.report.style import FILTER_STYLE, style  # noqa: E402
 
 FS = 100.0
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -37,7 +38,7 @@ def _near(img, color, tol=0.12):
 
 def test_plot_euler_lines_and_pixels(tmp_path, trial, q_offset):
     out = tmp_path / "euler.png"
-    fig = plots.plot_euler(trial, {"offset": q_offset}, out=out)
+    fig = plots.plot_euler(trial, {"madgwick": q_offset}, out=out)
     assert out.read_bytes()[:8] == PNG_MAGIC
     t = np.arange(trial.n_samples) / FS
     truth = np.degrees(quat.to_euler_zyx(trial.opt_quat))
@@ -46,24 +47,160 @@ def test_plot_euler_lines_and_pixels(tmp_path, trial, q_offset):
     assert [ax.get_ylabel() for ax in axes] == ["roll [°]", "pitch [°]", "yaw [°]"]
     for i, ax in enumerate(axes):
         lines = {ln.get_label(): ln for ln in ax.get_lines()}
-        assert set(lines) == {"truth", "offset"}
+        assert set(lines) == {"truth", "madgwick"}
         np.testing.assert_allclose(lines["truth"].get_xdata(), t)
         np.testing.assert_allclose(lines["truth"].get_ydata(), truth[:, i])
-        np.testing.assert_allclose(lines["offset"].get_ydata(), est[:, i])
+        np.testing.assert_allclose(lines["madgwick"].get_ydata(), est[:, i])
     # yaw differs by 40° (mod 360); roll/pitch equal
     d = (axes[2].get_lines()[1].get_ydata() - axes[2].get_lines()[0].get_ydata()) % 360
     np.testing.assert_allclose(d, 40.0, atol=1e-9)
-    # the PNG shows both curves: in the yaw panel (bottom third) black and red pixels, apart
+    # the PNG shows both curves: in the yaw panel (bottom third, left column) black and red pixels, apart
     img = mpimg.imread(out)
-    h = img.shape[0]
-    yaw_panel = img[int(0.68 * h):int(0.92 * h), int(0.1 * img.shape[1]):int(0.95 * img.shape[1])]
-    black = _near(yaw_panel, plots.TRUTH_COLOR)
-    red = _near(yaw_panel, plots.EST_COLORS[0])
-    assert black.sum() > 500 and red.sum() > 500
+    h, w = img.shape[:2]
+    yaw_panel = img[int(0.68 * h):int(0.92 * h), int(0.08 * w):int(0.55 * w)]
+    black = _near(yaw_panel, style("truth")["color"])
+    red = _near(yaw_panel, style("madgwick")["color"])
+    assert black.sum() > 300 and red.sum() > 300
     # red pixels mostly above the black ones (yaw + 40°, the panel's y axis points up)
     rows = np.arange(yaw_panel.shape[0])[:, None]
     assert (rows * red).sum() / red.sum() < (rows * black).sum() / black.sum()
     plt.close(fig)
+
+
+def test_plot_euler_error_panel_shows_small_differences(trial):
+    """Estimate − truth per angle, wrapped: a 3° roll offset and a 40° yaw offset are 3 and 40 in the
+    error panels (Axes 4-6), whose scale shows a few degrees (not ±180°)."""
+    small = quat.multiply(trial.opt_quat, quat.from_rotvec([np.radians(3.0), 0.0, 0.0]))  # body-frame roll
+    big = quat.multiply(quat.from_rotvec([0.0, 0.0, np.radians(-170.0)]), trial.opt_quat)  # yaw −170°: wraps
+    fig = plots.plot_euler(trial, {"cf": small, "madgwick": big})
+    err_axes = fig.axes[3:6]
+    assert [ax.get_ylabel() for ax in err_axes] == ["roll error [°]", "pitch error [°]", "yaw error [°]"]
+    truth = np.degrees(quat.to_euler_zyx(trial.opt_quat))
+    for i, ax in enumerate(err_axes):
+        lines = {ln.get_label(): ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+        assert set(lines) == {"cf", "madgwick"}
+        for name, q in (("cf", small), ("madgwick", big)):
+            y = lines[name].get_ydata()
+            ok = np.isfinite(y)
+            want = plots.wrap_deg(np.degrees(quat.to_euler_zyx(q))[:, i] - truth[:, i])
+            assert ok.mean() > 0.95 and np.all((y[ok] >= -180) & (y[ok] < 180))
+            np.testing.assert_allclose(y[ok], want[ok], atol=1e-9)
+    yaw_big = err_axes[2].get_lines()[-1].get_ydata()
+    np.testing.assert_allclose(np.nanmedian(yaw_big), -170.0, atol=1e-6)
+    # roll: the 3° offset fills a visible part of the panel (the scale is not ±180°)
+    roll_cf = [ln for ln in err_axes[0].get_lines() if ln.get_label() == "cf"][0].get_ydata()
+    assert np.nanmax(np.abs(roll_cf)) > 1.0
+    plt.close(fig)
+    fig = plots.plot_euler(trial, {"cf": small})
+    lo, hi = fig.axes[3].get_ylim()
+    assert 3.0 < hi < 10.0 and lo == -hi
+    assert len(plots.plot_euler(trial, {"cf": small}, errors=False).axes) == 3
+    plt.close("all")
+
+
+def test_plot_error_broad_errors_over_time(tmp_path, trial):
+    """Total/heading/inclination [deg] per sample, per filter: a 5° heading offset is 5° total and
+    heading, 0 inclination; a 3° tilt is 3° total and inclination, 0 heading."""
+    heading5 = quat.multiply(quat.from_rotvec([0.0, 0.0, np.radians(5.0)]), trial.opt_quat)
+    tilt3 = quat.multiply(quat.from_rotvec([np.radians(3.0), 0.0, 0.0]), trial.opt_quat)
+    out = tmp_path / "error.png"
+    fig = plots.plot_error(trial, {"madgwick": heading5, "vqf_core": tilt3}, out=out, t_range=(1.0, 9.0))
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    axes = fig.axes[:3]
+    assert [ax.get_ylabel() for ax in axes] == ["total error [°]", "heading error [°]", "inclination error [°]"]
+    want = {"madgwick": (5.0, 5.0, 0.0), "vqf_core": (3.0, 0.0, 3.0)}
+    for i, ax in enumerate(axes):
+        lines = {ln.get_label(): ln for ln in ax.get_lines()}
+        assert set(lines) == {"madgwick", "vqf_core"}
+        for name, vals in want.items():
+            x, y = lines[name].get_xdata(), lines[name].get_ydata()
+            assert x.min() >= 1.0 and x.max() <= 9.0
+            np.testing.assert_allclose(y, vals[i], atol=1e-4)  # arccos near 1: ~1e-6° rounding
+        assert "madgwick 5.00°" in ax.get_title(loc="left") or i == 2
+    assert "vqf_core 3.00°" in axes[0].get_title(loc="left")
+    with pytest.raises(ValueError, match="expected shape"):
+        plots.plot_error(trial, {"bad": heading5[:5]})
+    plt.close("all")
+
+
+def _colors_by_label(fig) -> dict:
+    """label -> RGBA of every labelled line, bar and 3-D box (first occurrence per Axes kept as a list)."""
+    from matplotlib.colors import to_rgba
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    found = {}
+    for ax in fig.axes:
+        for ln in ax.get_lines():
+            found.setdefault(ln.get_label(), set()).add(to_rgba(ln.get_color()))
+        for c in ax.containers:  # bars
+            for patch in c.patches:
+                found.setdefault(c.get_label(), set()).add(to_rgba(patch.get_facecolor(), 1.0)[:3] + (1.0,))
+        for coll in ax.collections:
+            if isinstance(coll, Poly3DCollection):
+                found.setdefault(coll.get_label() or "_box", set()).add(tuple(coll.get_facecolor()[0][:3]) + (1.0,))
+    return found
+
+
+def test_same_filter_same_colour_in_every_figure(tmp_path, trial):
+    """One palette: every figure function draws a filter in ``style(name)`` (colour and line style)."""
+    import pandas as pd
+    from matplotlib.colors import to_rgba
+
+    names = ["toggling", "madgwick", "cf", "vqf"]
+    q = {n: quat.multiply(quat.from_rotvec([0.0, 0.0, np.radians(2.0 + k)]), trial.opt_quat)
+         for k, n in enumerate(names)}
+    t = trial
+    figs = {
+        "plot_euler": plots.plot_euler(t, q),
+        "plot_error": plots.plot_error(t, q),
+        "error_figure": study_report.error_figure("x", t, {n: np.full(t.n_samples, 1.0 + k)
+                                                          for k, n in enumerate(names)}),
+        "groups_figure": study_report.groups_figure(pd.DataFrame({n: [1.0 + k, 2.0] for k, n in enumerate(
+            names + ["mahony", "aqua", "ekf"])}, index=["g1", "g2"])),
+        "timeline_figure": study_report.timeline_figure("x", t, {"alpha_acc": np.full(t.n_samples, 0.01),
+                                                                "p": np.tile([0.7, 0.1, 0.1, 0.1], (t.n_samples, 1)),
+                                                                "states": ("rest", "a", "b", "c")},
+                                                        np.zeros(t.n_samples, int)),
+    }
+    seen = {}
+    for fname, fig in figs.items():
+        for label, cols in _colors_by_label(fig).items():
+            base = label.split(" ")[0] if label.startswith("predicted") is False else "toggling"
+            if label == "ground truth":
+                base = "truth"
+            if base in FILTER_STYLE:
+                assert cols == {to_rgba(style(base)["color"])}, (fname, label, cols)
+                seen.setdefault(base, set()).add(fname)
+    for n in names:
+        assert {"plot_euler", "plot_error", "error_figure", "groups_figure"} <= seen[n], (n, seen[n])
+    assert "timeline_figure" in seen["toggling"] and "timeline_figure" in seen["truth"]
+    assert {"mahony", "aqua", "ekf"} <= set(seen)
+    # line styles too: the same in the Euler plot and the error plot
+    for fname in ("plot_euler", "plot_error", "error_figure"):
+        for ax in figs[fname].axes:
+            for ln in ax.get_lines():
+                if ln.get_label() in FILTER_STYLE:
+                    assert ln.get_linestyle() == {"-": "-", "--": "--", ":": ":", "-.": "-."}[
+                        style(ln.get_label())["linestyle"]], (fname, ln.get_label())
+    # the 3-D boxes: the estimate's box in its filter's colour, the truth's in the truth's
+    for n in ("madgwick", "toggling"):
+        fig = plots.plot_3d_frames(t, q[n], [1.0], name=n)
+        boxes = [c for c in fig.axes[0].collections if c.__class__.__name__ == "Poly3DCollection"]
+        assert tuple(boxes[0].get_facecolor()[0][:3]) == to_rgba(style(n)["color"])[:3]
+        assert tuple(boxes[1].get_facecolor()[0][:3]) == to_rgba(style("truth")["color"])[:3]
+    plt.close("all")
+
+
+def test_style_fallbacks():
+    assert style("madgwick") == FILTER_STYLE["madgwick"] and style("madgwick") is not FILTER_STYLE["madgwick"]
+    v = style("toggling_6d")  # a variant: the base colour, dash-dotted
+    assert v["color"] == FILTER_STYLE["toggling"]["color"] and v["linestyle"] == "-."
+    assert style("vqf_6d")["color"] == FILTER_STYLE["vqf"]["color"]
+    u = style("my_new_filter")  # unknown: a fixed colour not used by any filter, dotted
+    assert u == style("my_new_filter") and u["linestyle"] == ":"
+    assert u["color"] not in {s["color"] for s in FILTER_STYLE.values()}
+    colors = [s["color"] for s in FILTER_STYLE.values()]
+    assert len(set(colors)) == len(colors)  # no two filters share a colour
 
 
 def test_plot_euler_svg_and_crop(tmp_path, trial, q_offset):
@@ -123,6 +260,21 @@ def _cli(argv):
     add_plot_parser(p.add_subparsers(dest="command"))
     args = p.parse_args(argv)
     return args.func(args)
+
+
+def test_cli_plot_error_and_euler_on_mini_data(tmp_path, mini_index, capsys):
+    data = str(mini_index.root)
+    out = tmp_path / "error.png"
+    _cli(["plot", "error", "--trial", "24", "--filters", "madgwick,vqf_core", "--data", data, "--out", str(out)])
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    out = tmp_path / "euler.svg"
+    _cli(["plot", "euler", "--trial", "24", "--filters", "cf", "--data", data, "--start", "4", "--out", str(out)])
+    assert b"<svg" in out.read_bytes()[:500]
+    with pytest.raises(ValueError, match="needs --models"):
+        _cli(["plot", "error", "--trial", "24", "--filters", "madgwick,toggling", "--data", data, "--out", str(out)])
+    with pytest.raises(ValueError, match="unknown filter 'nope'"):
+        _cli(["plot", "error", "--trial", "24", "--filters", "nope", "--data", data, "--out", str(out)])
+    plt.close("all")
 
 
 @pytest.mark.broad

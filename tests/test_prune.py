@@ -150,3 +150,54 @@ def test_export_max_bytes_trains_and_exports_the_chosen_point(tiny_sweep, mini_i
     assert meta["config"]["classifier"]["n_estimators"] == 3 and meta["config"]["run"]["max_features"] == 6
     assert meta["training_trials"] == json.loads((root / "models" / "metadata.json").read_text())["training_trials"]
     assert (out / "models" / "gains.json").is_file() and rep["array"]["ok"]
+
+
+# ------------------------------------------- export --max-bytes without a sweep: the default point
+
+
+def _fake_training(calls, source_dir):
+    """Stands in for ``run_training`` in ``togglecf export``: records the config, copies trained models."""
+    import shutil
+
+    def fake(cfg, data_dir=None, trials=None, out=None, **kw):
+        calls.append({"cfg": cfg, "trials": trials, "out": out})
+        shutil.copytree(source_dir, out, dirs_exist_ok=True)
+        return {"out": out}
+    return fake
+
+
+def test_export_max_bytes_without_sweep_uses_the_default_point(tiny_model_dir, mini_index, tmp_path, monkeypatch,
+                                                                capsys):
+    """No sweep in --sweep/OUT/sweep: the documented default point is trained (no sweep runs); a budget
+    below its measured size is refused at once; --full-sweep runs the sweep."""
+    from togglecf.cli import export as cli_export
+    from togglecf.cli.main import main
+
+    calls = []
+    monkeypatch.setattr(cli_export, "run_training", _fake_training(calls, tiny_model_dir))
+    monkeypatch.setattr(cli_export, "sweep_from_args", lambda *a, **k: pytest.fail("the sweep must not run"))
+    assert prune.DEFAULT_EXPORT_POINT == PrunePoint(10, 4, 10, 4, 0)
+    out = tmp_path / "emb"
+    args = ["export", "--models", str(tiny_model_dir), "--out", str(out), "--data", str(mini_index.root),
+            "--no-riscv", "--no-check", "--format", "array"]
+    assert main([*args, "--max-bytes", "32768"]) == 0
+    assert len(calls) == 1
+    cfg = calls[0]["cfg"]
+    assert cfg["classifier"]["n_estimators"] == 10 and cfg["classifier"]["max_depth"] == 4
+    assert cfg["regressor"]["n_estimators"] == 10 and cfg["regressor"]["max_depth"] == 4
+    assert cfg["run"]["max_features"] == 0
+    rep = json.loads((out / "export_report.json").read_text())
+    assert rep["pruning"]["source"] == "default" and rep["pruning"]["point"]["key"] == "c10x4_r10x4_fall"
+    assert "no pruning sweep in" in capsys.readouterr().err
+    # a budget the default point cannot meet: refused before any training
+    assert main([*args, "--max-bytes", "8000"]) == 1
+    err = capsys.readouterr().err
+    assert "below the default pruned point's 17715 bytes" in err and "--full-sweep" in err and len(calls) == 1
+    # --full-sweep: the sweep runs (here: stubbed to one row) and its best point is trained
+    row = {"key": "c3x2_r3x2_f6", "clf_trees": 3, "clf_depth": 2, "reg_trees": 3, "reg_depth": 2, "max_features": 6,
+           "reference": False, "features_used": 6, "mean_total": 3.0, "array_host_bytes": 5000,
+           "array_riscv_bytes": 5000, "us_per_prediction": 0.5}
+    monkeypatch.setattr(cli_export, "sweep_from_args", lambda a, d: [row])
+    assert main([*args, "--max-bytes", "8000", "--full-sweep"]) == 0
+    assert calls[-1]["cfg"]["classifier"]["n_estimators"] == 3
+    assert json.loads((out / "export_report.json").read_text())["pruning"]["source"] == "sweep"

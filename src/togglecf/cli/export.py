@@ -1,10 +1,12 @@
 """``togglecf export``: a model directory as C (TL2cgen and/or compact arrays, checked against the
-Python models) and the whole toggling filter in C; ``--max-bytes`` picks a pruned point first."""
+Python models) and the whole toggling filter in C; ``--max-bytes`` trains a pruned point first: the
+best point of an existing pruning sweep, else the documented default point
+(``run.prune.DEFAULT_EXPORT_POINT``); the sweep itself runs only with ``--full-sweep``."""
 from __future__ import annotations
 
 import shutil
 import sys
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 
 from togglecf.cli.prune import add_sweep_arguments, sweep_from_args
@@ -22,7 +24,16 @@ from togglecf.embedded.forest_export import (
 from togglecf.embedded.toolchain import RISCV_GCC, link_riscv
 from togglecf.learn.models import load_bundle
 from togglecf.run.config import load_config
-from togglecf.run.prune import PrunePoint, choose_point, format_front, size_key, write_sweep_report
+from togglecf.run.prune import (
+    DEFAULT_EXPORT_POINT,
+    DEFAULT_EXPORT_SIZES,
+    PrunePoint,
+    choose_point,
+    existing_sweep_rows,
+    format_front,
+    size_key,
+    write_sweep_report,
+)
 from togglecf.run.train import run_training
 
 __all__ = ["add_export_parser", "cmd_export", "train_within_budget"]
@@ -44,39 +55,66 @@ def add_export_parser(subparsers):
     sp.add_argument("--6d", dest="six_d", action="store_true",
                     help="C filter without magnetometer (6D gains from gains.json)")
     sp.add_argument("--max-bytes", type=int, metavar="N",
-                    help="flash budget: run (or resume) the pruning sweep of --models in OUT/sweep, pick the point "
-                    "with the lowest held-out error whose RISC-V object code (array format; tl2cgen with "
-                    "--format tl2cgen) fits in N bytes, train it on the model's training trials into OUT/models "
-                    "and export that")
+                    help="flash budget: train a pruned point on the model's training trials into OUT/models and "
+                    "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "
+                    "error whose RISC-V object code (array format; tl2cgen with --format tl2cgen) fits in N bytes, "
+                    f"else the default point ({DEFAULT_EXPORT_POINT.clf_trees} trees x depth "
+                    f"{DEFAULT_EXPORT_POINT.clf_depth}, all features: the sweep's choice for 32 KB); minutes")
+    sp.add_argument("--full-sweep", action="store_true",
+                    help="with --max-bytes: run (or resume) the pruning sweep of --models in --sweep DIR first "
+                    "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")
     sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
     add_sweep_arguments(sp)
     sp.set_defaults(func=cmd_export)
     return sp
 
 
-def train_within_budget(args) -> tuple:
-    """``--max-bytes``: the sweep's best point within the budget, trained on the model's own
-    training trials (gains on out-of-fold predictions, as ``togglecf train``). Returns the new
-    model directory and a report of the choice (the point's held-out errors and the reference's)."""
-    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
-    key = size_key("tl2cgen" if args.format == "tl2cgen" else "array", riscv)
-    sweep_dir = Path(args.sweep or Path(args.out) / "sweep")
-    rows = sweep_from_args(args, sweep_dir)
+def _point_from_sweep(args, rows, sweep_dir, key):
     write_sweep_report(rows, sweep_dir, key, args.max_bytes)
     print(format_front(rows, key))
     best = choose_point(rows, args.max_bytes, key)
-    ref = next(r for r in rows if r["reference"])
-    print(f"chosen for {args.max_bytes} bytes: {best['key']} ({best[key]} bytes in the sweep, held-out mean total "
-          f"{best['mean_total']:.3f}° vs {ref['mean_total']:.3f}° unpruned)", file=sys.stderr)
-    bundle = load_bundle(args.models)
+    ref = next((r for r in rows if r["reference"]), None)
+    vs = f" vs {ref['mean_total']:.3f}° unpruned" if ref else ""
+    print(f"chosen for {args.max_bytes} bytes from the sweep in {sweep_dir} ({len(rows)} points): {best['key']} "
+          f"({best[key]} bytes in the sweep, held-out mean total {best['mean_total']:.3f}°{vs})", file=sys.stderr)
     point = PrunePoint(**{f.name: best[f.name] for f in fields(PrunePoint) if f.name != "reference"})
+    return point, best, ref
+
+
+def train_within_budget(args) -> tuple:
+    """``--max-bytes``: a pruned point within the budget, trained on the model's own training trials
+    (gains on out-of-fold predictions, as ``togglecf train``): with ``--full-sweep`` the best point of
+    the pruning sweep (run or resumed); else the best point of a sweep already in ``--sweep``; else
+    ``DEFAULT_EXPORT_POINT``. Returns the new model directory and a report of the choice."""
+    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
+    key = size_key("tl2cgen" if args.format == "tl2cgen" else "array", riscv)
+    sweep_dir = Path(args.sweep or Path(args.out) / "sweep")
+    if args.full_sweep:
+        rows = sweep_from_args(args, sweep_dir)
+    else:
+        rows = existing_sweep_rows(args.models, sweep_dir, args.folds, args.inner_folds, args.data)
+    if rows:
+        point, best, ref = _point_from_sweep(args, rows, sweep_dir, key)
+        source = "sweep"
+    else:
+        point, best, ref, source = DEFAULT_EXPORT_POINT, None, None, "default"
+        need = DEFAULT_EXPORT_SIZES[key]
+        if args.max_bytes < need:
+            raise ValueError(f"--max-bytes {args.max_bytes} is below the default pruned point's {need} bytes "
+                             f"({key}, {DEFAULT_EXPORT_POINT.key}) and no sweep is in {sweep_dir}: add --full-sweep "
+                             "to search smaller points (about 30 minutes on 2 cores)")
+        print(f"no pruning sweep in {sweep_dir}: using the default point {point.key} (10 trees x depth 4, all "
+              f"features; ~{need} bytes {key} in the sweep of models/default); --full-sweep searches for this model",
+              file=sys.stderr)
+    bundle = load_bundle(args.models)
     cfg = point.apply(load_config(bundle.metadata["config"]))
     cfg["run"]["name"] = f"{cfg['run']['name']}-{point.key}"
     model_dir = Path(args.out) / "models"
     run_training(cfg, data_dir=args.data, trials=",".join(bundle.metadata["training_trials"]), out=model_dir,
                  cv=True, verbose=True)
-    choice = {"max_bytes": args.max_bytes, "size_key": key, "sweep_dir": str(sweep_dir), "point": best,
-              "reference": ref, "source_models": str(args.models), "models": str(model_dir)}
+    choice = {"max_bytes": args.max_bytes, "size_key": key, "source": source, "sweep_dir": str(sweep_dir),
+              "point": best if best is not None else {"key": point.key, **asdict(point)}, "reference": ref,
+              "source_models": str(args.models), "models": str(model_dir)}
     return model_dir, choice
 
 
@@ -142,8 +180,10 @@ def cmd_export(args) -> int:
             got = (forest_size["riscv"] or forest_size["host"])["total"]
             choice["filter_forest_bytes"] = got
             if got > args.max_bytes:
+                hint = ("run the sweep with --full-sweep to find a smaller point" if choice["source"] == "default"
+                        else "choose a smaller --max-bytes")
                 print(f"error: the final models' trees take {got} bytes, over the budget of {args.max_bytes} "
-                      "(the sweep measured the folds' models): choose a smaller --max-bytes", file=sys.stderr)
+                      f"(the sweep measured the folds' models): {hint}", file=sys.stderr)
                 ok = False
     else:
         print(f"(no C filter: {Path(args.models) / 'gains.json'} is missing; `togglecf train` learns the gains)")

@@ -19,14 +19,14 @@ from togglecf.cli.stream import add_stream_parser
 from togglecf.cli.train import add_train_parser
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
-from togglecf.data.broad import DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
+from togglecf.data.broad import MAX_INVALID_FRACTION, DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
 from togglecf.data.download import download_broad
 from togglecf.filters import FILTERS
 from togglecf.metrics.broad import METRICS, group_means
 from togglecf.parallel.backend import sweep_chunk_size
 from togglecf.registry import FILTER_NAMES, FilterSpec
 from togglecf.run.scoring import parse_grid
-from togglecf.run.sweep import ResultStore, grid_search, journal_path, run_sweep
+from togglecf.run.sweep import ResultStore, format_failures, grid_search, journal_path, run_sweep
 
 
 def main(argv=None) -> int:
@@ -124,10 +124,12 @@ def _params(specs) -> dict:
     return {k: v[0] for k, v in grid.items()}
 
 
-def _tables(results: dict, groups: dict):
+def _tables(results: dict, groups: dict, invalid: dict | None = None):
+    invalid = invalid or {}
     per_trial = pd.DataFrame(
         [{"trial": r.trial, **{m: r.errors[m] for m in METRICS}, "us_per_sample": r.us_per_sample,
-          "n_samples": r.n_samples} for r in results.values()]).set_index("trial")
+          "n_samples": r.n_samples, "n_invalid": invalid.get(r.trial, {}).get("samples", np.nan)}
+         for r in results.values()]).set_index("trial")
     per_group = pd.DataFrame.from_dict(group_means({n: r.errors for n, r in results.items()}, groups),
                                        orient="index")
     per_group.index.name = "group"
@@ -135,7 +137,9 @@ def _tables(results: dict, groups: dict):
 
 
 def _print_tables(title, per_trial, per_group):
-    fmt = {c: "{:.3f}".format for c in per_trial.columns if c != "n_samples"}
+    fmt = {c: "{:.3f}".format for c in per_trial.columns if c not in ("n_samples", "n_invalid")}
+    if "n_invalid" in per_trial:
+        fmt["n_invalid"] = lambda v: "?" if pd.isna(v) else str(int(v))
     print(f"\n{title}\nper trial (RMSE in degrees over the movement samples):")
     print(per_trial.to_string(formatters=fmt))
     print("\nper BROAD group (mean of the trials present; n_trials of n_listed):")
@@ -172,13 +176,16 @@ def cmd_evaluate(args):
                           chunk_size=chunk, on_error="report", desc="evaluate")
     res = sweep.results[0]
     if not res:
-        raise ValueError(f"no trial could be evaluated: {sweep.failed}")
-    per_trial, per_group = _tables(res, index.groups)
+        _print_failure_lines(sweep.failed, index)
+        raise ValueError(f"no trial could be evaluated: all {len(names)} selected trial(s) failed (listed above)")
+    _report_invalid(sweep.invalid, index)
+    per_trial, per_group = _tables(res, index.groups, sweep.invalid)
     _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group)
     if args.out:
         _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings),
-                                                     failed_trials=sweep.failed))
-    return _report_failures(sweep.failed, [])
+                                                     failed_trials=sweep.failed, invalid_samples=sweep.invalid,
+                                                     max_invalid_fraction=MAX_INVALID_FRACTION))
+    return _report_failures(sweep.failed, [], index)
 
 
 def cmd_tune(args):
@@ -210,7 +217,7 @@ def cmd_tune(args):
         _write(args.out, per_trial, per_group, _meta(args, index, names, grid=grid, tagp=result.params,
                                                      mean_total_grid=result.mean_total, failed_trials=result.failed,
                                                      incomplete_trials=result.incomplete))
-    return _report_failures(result.failed, result.incomplete)
+    return _report_failures(result.failed, result.incomplete, index)
 
 
 class _sweep_context:
@@ -240,16 +247,31 @@ class _sweep_context:
         self.backend.close()
 
 
-def _report_failures(failed: dict, incomplete: list) -> int:
-    """Exit code 3 (after writing what was computed) when trials failed; they are listed on stderr."""
+def _print_failure_lines(failed: dict, index):
+    """One line per failed trial on stderr: file, field, problem."""
+    for line in format_failures(failed, index.available):
+        print(f"  {line}", file=sys.stderr)
+
+
+def _report_invalid(invalid: dict, index):
+    """One stderr line per evaluated trial that holds non-finite IMU samples (the filters skipped them)."""
+    for name, c in invalid.items():
+        if c.get("samples"):
+            per_field = ", ".join(f"{k} {c[k]}" for k in ("gyr", "acc", "mag") if c.get(k))
+            n = index.available[name]
+            print(f"note: {n}: {c['samples']} IMU sample(s) not finite ({per_field}); the filter skipped them "
+                  f"(a trial is refused above {MAX_INVALID_FRACTION:.0%} per field)", file=sys.stderr)
+
+
+def _report_failures(failed: dict, incomplete: list, index) -> int:
+    """Exit code 3 (after writing what was computed) when trials failed; one line per trial on stderr."""
     if not failed and not incomplete:
         return 0
     print(f"\nWARNING: {len(failed)} trial(s) failed and are missing from the tables:", file=sys.stderr)
-    for name, err in failed.items():
-        print(f"  {name}: {err}", file=sys.stderr)
+    _print_failure_lines(failed, index)
     for name in incomplete:
         if name not in failed:
-            print(f"  {name}: not evaluated at every grid point", file=sys.stderr)
+            print(f"  {index.available.get(name, name)}: not evaluated at every grid point", file=sys.stderr)
     print("rerun with the same --out to compute only the missing points", file=sys.stderr)
     return 3
 

@@ -1,4 +1,4 @@
-"""``togglecf plot euler|3d``: orientation figures of one trial (``togglecf.report.plots``)."""
+"""``togglecf plot euler|error|3d``: orientation figures of one trial (``togglecf.report.plots``)."""
 from __future__ import annotations
 
 import sys
@@ -9,7 +9,7 @@ import numpy as np
 
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
 from togglecf.registry import FILTER_NAMES, TOGGLING, FilterSpec
-from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_euler
+from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
 __all__ = ["add_plot_parser"]
 
@@ -29,14 +29,34 @@ def _estimate(trial, name, models, use_mag):
     return f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None).quat
 
 
+def _estimates(args, trial) -> dict:
+    """name -> quaternions of every filter of ``--filters`` (``--models`` adds toggling)."""
+    names = [s.strip() for s in args.filters.split(",") if s.strip()]
+    if args.models and TOGGLING not in names:
+        names.append(TOGGLING)
+    if not names:
+        raise ValueError("--filters names no filter")
+    bad = [n for n in names if n not in FILTER_NAMES]
+    if bad:
+        raise ValueError(f"unknown filter {bad[0]!r} in --filters; available: {', '.join(FILTER_NAMES)}")
+    if TOGGLING in names and not args.models:
+        raise ValueError("--filters toggling needs --models DIR (a `togglecf train` model directory)")
+    return {n: _estimate(trial, n, args.models, not args.six_d) for n in names}
+
+
 def cmd_plot_euler(args):
     trial = _load_trial(args)
-    names = [s.strip() for s in args.filters.split(",") if s.strip()]
-    if args.models and "toggling" not in names:
-        names.append("toggling")
-    est = {n: _estimate(trial, n, args.models, not args.six_d) for n in names}
+    est = _estimates(args, trial)
     t_range = (args.start, args.end if args.end is not None else trial.duration)
     plot_euler(trial, est, out=args.out, t_range=t_range)
+    print(f"wrote {args.out}", file=sys.stderr)
+
+
+def cmd_plot_error(args):
+    trial = _load_trial(args)
+    est = _estimates(args, trial)
+    t_range = (args.start, args.end if args.end is not None else trial.duration)
+    plot_error(trial, est, out=args.out, t_range=t_range)
     print(f"wrote {args.out}", file=sys.stderr)
 
 
@@ -55,9 +75,10 @@ def cmd_plot_3d(args):
 
 
 def add_plot_parser(subparsers):
-    """``togglecf plot euler|3d ...`` (wire into ``cli._parser``: ``add_plot_parser(sub)``)."""
+    """``togglecf plot euler|error|3d ...`` (wire into ``cli._parser``: ``add_plot_parser(sub)``)."""
     choices = FILTER_NAMES
-    p = subparsers.add_parser("plot", help="plot a filter's orientation on one trial (Euler angles, 3-D)")
+    p = subparsers.add_parser("plot", help="plot filters' orientation on one trial (Euler angles and their errors, "
+                              "BROAD's errors over time, 3-D)")
     psub = p.add_subparsers(dest="plot_kind", required=True)
 
     def common(sp):
@@ -69,11 +90,19 @@ def add_plot_parser(subparsers):
         sp.add_argument("--end", type=float, default=None, help="end time [s] (default: trial end)")
         sp.add_argument("--out", required=True, metavar="FILE")
 
-    sp = psub.add_parser("euler", help="roll/pitch/yaw of estimates vs ground truth -> PNG/SVG")
+    sp = psub.add_parser("euler", help="roll/pitch/yaw of estimates vs ground truth, and estimate − truth per "
+                         "angle (wrapped to ±180°) -> PNG/SVG")
     common(sp)
     sp.add_argument("--filters", default="madgwick", help="comma-separated filter names (default: madgwick); "
                     f"any of {', '.join(choices)}; --models adds toggling")
     sp.set_defaults(func=cmd_plot_euler)
+
+    sp = psub.add_parser("error", help="BROAD's total/heading/inclination error over time of several filters "
+                         "-> PNG/SVG")
+    common(sp)
+    sp.add_argument("--filters", default="madgwick,vqf_core", help="comma-separated filter names (default: "
+                    f"madgwick,vqf_core); any of {', '.join(choices)}; --models adds toggling")
+    sp.set_defaults(func=cmd_plot_error)
 
     sp = psub.add_parser("3d", help="IMU box of an estimate beside the truth: .gif/.mp4 animation or .png frames")
     common(sp)

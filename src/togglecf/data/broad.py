@@ -17,7 +17,8 @@ import numpy as np
 
 __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
-    "resolve_data_dir", "BROAD_URL", "GRAVITY",
+    "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
+    "check_evaluable",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -25,6 +26,25 @@ BROAD_URL = "https://github.com/dlaidig/broad"
 TRIAL_SUFFIXES = (".hdf5", ".mat")
 _IMU_FIELDS = ("imu_gyr", "imu_acc", "imu_mag")
 _MAX_PLAUSIBLE_GYRO = 35.0  # rad/s (~2000 °/s, the top of common gyro ranges); larger means °/s
+
+#: Largest fraction of a trial's samples that may be non-finite (NaN/inf) in one IMU field (gyr, acc
+#: or mag) before the trial is refused. Below it, bad samples are kept and counted (``Trial.invalid``):
+#: every filter skips the affected step (``filters/base.py``) and the metric scores the others. 10 %:
+#: a recording with dropouts here and there stays usable; one that is mostly holes is reported, not
+#: scored as if it were a measurement of the filter.
+MAX_INVALID_FRACTION = 0.10
+
+#: Shortest recording that is loaded and evaluated [s]. BROAD's errors are RMSEs over the movement
+#: samples after the filters have started; the toggling filter makes its first prediction after one
+#: feature window (0.2 s) and every filter starts from the first sample, so a recording of under a
+#: second is scored on start-up transients (or, with no movement sample, on nothing: a table of
+#: NaN). BROAD's trials are 2-5 minutes long; its shortest movement phases last tens of seconds.
+MIN_DURATION_S = 1.0
+
+
+def min_samples(fs: float) -> int:
+    """The fewest samples a recording at ``fs`` [Hz] may have: ``MIN_DURATION_S`` rounded down."""
+    return max(2, int(np.floor(MIN_DURATION_S * fs + 1e-9)))
 
 
 class DataError(ValueError):
@@ -68,6 +88,8 @@ class Trial:
     groups: tuple[str, ...] = ()
     source: Path | None = None
     check_units: bool = field(default=True, repr=False)
+    #: non-finite (NaN/inf) samples per IMU field: ``{"gyr": k, "acc": k, "mag": k}`` (set on construction)
+    invalid: dict = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         src = self.source if self.source is not None else self.name
@@ -96,10 +118,15 @@ class Trial:
             mov = mov.astype(bool)
         object.__setattr__(self, "movement", mov)
         object.__setattr__(self, "groups", tuple(self.groups))
+        invalid = {}
         for name in ("gyr", "acc", "mag"):
             bad = ~np.all(np.isfinite(getattr(self, name)), axis=1)
-            if bad.any():
-                raise DataError(src, name, f"{bad.sum()} non-finite samples (first at index {np.argmax(bad)})")
+            invalid[name] = int(bad.sum())
+            if invalid[name] > MAX_INVALID_FRACTION * n:
+                raise DataError(src, name, f"{invalid[name]} of {n} samples ({invalid[name] / n:.1%}) are not finite "
+                                f"(NaN/inf; first at index {np.argmax(bad)}); at most "
+                                f"{MAX_INVALID_FRACTION:.0%} may be (togglecf.data.broad.MAX_INVALID_FRACTION)")
+        object.__setattr__(self, "invalid", invalid)
         for name in ("opt_quat", "opt_pos"):
             arr = getattr(self, name)
             fin = np.isfinite(arr)
@@ -112,12 +139,17 @@ class Trial:
             self._check_units(src)
 
     def _check_units(self, src):
-        acc_norm = float(np.median(np.linalg.norm(self.acc, axis=1)))
+        acc = np.linalg.norm(self.acc, axis=1)
+        gyr = np.linalg.norm(self.gyr, axis=1)
+        acc, gyr = acc[np.isfinite(acc)], gyr[np.isfinite(gyr)]
+        if acc.size == 0 or gyr.size == 0:
+            raise DataError(src, "acc" if acc.size == 0 else "gyr", "no finite sample")
+        acc_norm = float(np.median(acc))
         if 0.5 < acc_norm < 2.0:
             raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g}: looks like g, expected m/s² (multiply by {GRAVITY})")
         if not 4.0 < acc_norm < 20.0:
             raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g} m/s² is implausible for an IMU on earth (expected ~{GRAVITY})")
-        gyr_p99 = float(np.percentile(np.linalg.norm(self.gyr, axis=1), 99))
+        gyr_p99 = float(np.percentile(gyr, 99))
         if gyr_p99 > _MAX_PLAUSIBLE_GYRO:
             raise DataError(src, "gyr", f"99th percentile |gyr| = {gyr_p99:.3g}: looks like °/s, expected rad/s")
 
@@ -129,6 +161,13 @@ class Trial:
     def duration(self) -> float:
         """Length in seconds."""
         return self.n_samples / self.fs
+
+    @property
+    def n_invalid(self) -> int:
+        """Samples with a non-finite value in any IMU field (the filters skip their update)."""
+        ok = np.isfinite(self.gyr).all(axis=1) & np.isfinite(self.acc).all(axis=1) & np.isfinite(self.mag).all(axis=1)
+        bad = ~ok
+        return int(bad.sum())
 
     def slice(self, start: int, stop: int) -> "Trial":
         """A sub-trial of samples ``start:stop`` (same name with a suffix)."""
@@ -143,8 +182,10 @@ class Trial:
 def load_trial(path, groups=(), check_units: bool = True) -> Trial:
     """Read one BROAD trial from ``.hdf5`` or ``.mat``.
 
-    Raises ``DataError`` naming the file and field for a missing dataset, wrong shape,
-    non-finite IMU samples, implausible units or an unreadable (corrupt/truncated) file.
+    Raises ``DataError`` naming the file and field for a missing dataset, wrong shape, a recording
+    shorter than ``MIN_DURATION_S``, more than ``MAX_INVALID_FRACTION`` non-finite samples in an IMU
+    field, implausible units or an unreadable (corrupt/truncated) file. Fewer non-finite samples are
+    kept and counted in ``Trial.invalid``.
     """
     path = Path(path)
     if not path.is_file():
@@ -156,9 +197,30 @@ def load_trial(path, groups=(), check_units: bool = True) -> Trial:
         fields, fs = _read_mat(path)
     else:
         raise DataError(path, None, f"unknown trial format {suffix!r}; expected .hdf5 or .mat")
+    n = int(np.shape(fields["imu_gyr"])[0]) if np.ndim(fields["imu_gyr"]) else 0
+    if 0 < fs and n < min_samples(fs):
+        raise DataError(path, "imu_gyr", f"{n} samples ({n / fs:.2f} s at {fs:.1f} Hz) is too short: at least "
+                        f"{min_samples(fs)} samples ({MIN_DURATION_S:g} s, togglecf.data.broad.MIN_DURATION_S) are "
+                        "needed to evaluate a filter")
     return Trial(name=path.stem, fs=fs, gyr=fields["imu_gyr"], acc=fields["imu_acc"], mag=fields["imu_mag"],
                  opt_quat=fields["opt_quat"], opt_pos=fields["opt_pos"], movement=fields["movement"],
                  groups=tuple(groups), source=path, check_units=check_units)
+
+
+def check_evaluable(trial: Trial) -> Trial:
+    """Refuse (``DataError`` naming the file) a trial whose BROAD errors cannot be computed: shorter
+    than ``MIN_DURATION_S``, or without a sample that is both movement and has ground truth (the
+    RMSEs would be NaN). Returns the trial."""
+    src = trial.source if trial.source is not None else trial.name
+    n_min = min_samples(trial.fs)
+    if trial.n_samples < n_min:
+        raise DataError(src, "gyr", f"{trial.n_samples} samples ({trial.duration:.2f} s at {trial.fs:.1f} Hz) is too "
+                        f"short: at least {n_min} samples ({MIN_DURATION_S:g} s, togglecf.data.broad.MIN_DURATION_S) "
+                        "are needed to evaluate a filter")
+    if not np.any(trial.movement & np.isfinite(trial.opt_quat).all(axis=1)):
+        raise DataError(src, "movement", "no sample is both marked as movement and has ground truth (opt_quat): "
+                        "BROAD's errors (RMSE over those samples) cannot be computed")
+    return trial
 
 
 _REQUIRED = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "opt_pos", "movement")

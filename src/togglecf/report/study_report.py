@@ -3,9 +3,11 @@
 Written files (all atomically):
 ``per_trial.csv`` (one row per trial and filter, all metrics), ``per_trial_total.csv`` (total
 RMSE, trials x filters), ``per_group.csv`` (group means), ``summary.md``, ``results.json``,
-``plots/error_<trial>.png`` (total error over time: Madgwick red, fixed CF green, toggling blue,
-VQF grey), ``plots/groups.png`` (grouped bars per BROAD group), ``plots/timeline_<trial>.png``
-(α and the predicted state over the ground-truth motion state).
+``plots/error_<trial>.png`` (total error over time of VQF, Madgwick, the fixed CF and the
+toggling CF), ``plots/groups.png`` (grouped bars per BROAD group), ``plots/timeline_<trial>.png``
+(α and the predicted state over the ground-truth motion state). Every filter has its colour and
+line style from ``report.style`` (toggling blue, VQF grey, Madgwick red, fixed CF green, ...), the
+same as in ``report.plots``.
 """
 from __future__ import annotations
 
@@ -17,11 +19,13 @@ import pandas as pd
 
 from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from togglecf.learn.labels import make_targets
+from togglecf.report.style import color, style
 
-__all__ = ["write_report", "group_table"]
+__all__ = ["write_report", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
 
 MAIN_FILTERS = ("toggling", "vqf", "madgwick", "cf", "mahony", "aqua", "ekf")
-COLORS = {"madgwick": "tab:red", "cf": "tab:green", "toggling": "tab:blue", "vqf": "0.55"}
+#: filters drawn in ``error_<trial>.png`` (back to front) and, in this order, in ``groups.png``
+ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling")
 ABLATION_ROWS = ("toggling", "toggling_only", "noise_only", "ransac_off", "toggling_6d", "cf_6d", "madgwick_6d",
                  "vqf_6d")
 
@@ -127,50 +131,76 @@ def png_bytes(fig) -> bytes:
     return buf.getvalue()
 
 
+def error_figure(name: str, trial, series: dict):
+    """Total error [deg] over time of the filters of ``ERROR_PLOT_FILTERS`` found in ``series``
+    (filter -> per-sample error), each in its ``report.style``; line labels are the filter names."""
+    import matplotlib.pyplot as plt
+
+    time_s = np.arange(trial.n_samples) / trial.fs
+    fig, ax = plt.subplots(figsize=(10, 3.2))
+    for f in ERROR_PLOT_FILTERS:
+        if f in series:
+            ax.plot(time_s, series[f], label=f, **style(f))
+    ax.set(xlabel="time [s]", ylabel="total error [°]", title=name)
+    ax.legend(loc="upper left", ncols=4, fontsize=8)
+    return fig
+
+
+def groups_figure(per_group_total: pd.DataFrame):
+    """Bars of mean total RMSE per BROAD group, one bar series per filter of ``MAIN_FILTERS`` found in
+    the columns (label = filter name, colour ``report.style.color``); ``None`` when none is."""
+    import matplotlib.pyplot as plt
+
+    cols = [f for f in MAIN_FILTERS if f in per_group_total]
+    if not cols:
+        return None
+    g = per_group_total[cols]
+    fig, ax = plt.subplots(figsize=(12, 4))
+    w = 0.8 / len(cols)
+    x = np.arange(len(g))
+    for i, f in enumerate(cols):
+        ax.bar(x + i * w, g[f].to_numpy(), w, label=f, color=color(f))
+    ax.set_xticks(x + 0.4 - w / 2, g.index, rotation=40, ha="right")
+    ax.set(ylabel="mean total RMSE [°]", title="BROAD groups (held-out)")
+    ax.legend(ncols=len(cols), fontsize=8)
+    return fig
+
+
+def timeline_figure(name: str, trial, timeline: dict, truth_state):
+    """The toggling filter's α_acc and predicted state (toggling's style) over the ground-truth
+    motion state ``truth_state`` (per-sample class index; the truth's style)."""
+    import matplotlib.pyplot as plt
+
+    time_s = np.arange(trial.n_samples) / trial.fs
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 4), sharex=True)
+    a1.plot(time_s, timeline["alpha_acc"], label="toggling", **style("toggling"))
+    a1.set(ylabel="α_acc", title=name, ylim=(0, None))
+    p = timeline["p"]
+    pred_state = np.where(np.isnan(p).any(axis=1), -1, np.argmax(np.nan_to_num(p), axis=1))
+    a2.plot(time_s, truth_state, label="ground truth", **style("truth"))
+    a2.plot(time_s, pred_state, label="predicted (toggling)", **style("toggling"))
+    a2.set_yticks(range(len(timeline["states"])), timeline["states"], fontsize=7)
+    a2.set(xlabel="time [s]")
+    a2.legend(loc="upper right", fontsize=7)
+    return fig
+
+
 def _plots(out: Path, df, per_group_total, series, timelines, trials):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    figures = []
     for name, s in series.items():
-        if not s:
-            continue
-        t = trials[name]
-        time_s = np.arange(t.n_samples) / t.fs
-        fig, ax = plt.subplots(figsize=(10, 3.2))
-        for f in ("vqf", "madgwick", "cf", "toggling"):
-            if f in s:
-                ax.plot(time_s, s[f], color=COLORS[f], lw=0.8, label=f)
-        ax.set(xlabel="time [s]", ylabel="total error [°]", title=name)
-        ax.legend(loc="upper left", ncols=4, fontsize=8)
-        atomic_write_bytes(out / f"error_{name}.png", png_bytes(fig))
-        plt.close(fig)
-    cols = [f for f in ("toggling", "vqf", "madgwick", "cf", "mahony", "aqua", "ekf") if f in per_group_total]
-    if cols:
-        g = per_group_total[cols]
-        fig, ax = plt.subplots(figsize=(12, 4))
-        w = 0.8 / len(cols)
-        x = np.arange(len(g))
-        for i, f in enumerate(cols):
-            ax.bar(x + i * w, g[f].to_numpy(), w, label=f, color=COLORS.get(f))
-        ax.set_xticks(x + 0.4 - w / 2, g.index, rotation=40, ha="right")
-        ax.set(ylabel="mean total RMSE [°]", title="BROAD groups (held-out)")
-        ax.legend(ncols=len(cols), fontsize=8)
-        atomic_write_bytes(out / "groups.png", png_bytes(fig))
-        plt.close(fig)
+        if s:
+            figures.append((f"error_{name}.png", lambda name=name, s=s: error_figure(name, trials[name], s)))
+    figures.append(("groups.png", lambda: groups_figure(per_group_total)))
     for name, tl in timelines.items():
-        t = trials[name]
-        time_s = np.arange(t.n_samples) / t.fs
-        truth = make_targets(t).state
-        fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 4), sharex=True)
-        a1.plot(time_s, tl["alpha_acc"], color="tab:blue", lw=0.8)
-        a1.set(ylabel="α_acc", title=name, ylim=(0, None))
-        pred_state = np.where(np.isnan(tl["p"]).any(axis=1), -1, np.argmax(np.nan_to_num(tl["p"]), axis=1))
-        a2.plot(time_s, truth, color="0.4", lw=2.0, label="ground truth")
-        a2.plot(time_s, pred_state, color="tab:blue", lw=0.6, label="predicted")
-        a2.set_yticks(range(len(tl["states"])), tl["states"], fontsize=7)
-        a2.set(xlabel="time [s]")
-        a2.legend(loc="upper right", fontsize=7)
-        atomic_write_bytes(out / f"timeline_{name}.png", png_bytes(fig))
-        plt.close(fig)
+        figures.append((f"timeline_{name}.png", lambda name=name, tl=tl: timeline_figure(
+            name, trials[name], tl, make_targets(trials[name]).state)))
+    for fname, make in figures:
+        fig = make()
+        if fig is not None:
+            atomic_write_bytes(out / fname, png_bytes(fig))
+            plt.close(fig)

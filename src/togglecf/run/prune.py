@@ -56,8 +56,8 @@ from togglecf.run.sweep import ResultStore
 from togglecf.run.train import run_training
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["PrunePoint", "default_points", "pruning_sweep", "pareto_front", "choose_point", "write_sweep_report",
-           "format_front", "SIZE_KEYS"]
+__all__ = ["PrunePoint", "default_points", "pruning_sweep", "existing_sweep_rows", "pareto_front", "choose_point",
+           "write_sweep_report", "format_front", "SIZE_KEYS", "DEFAULT_EXPORT_POINT", "DEFAULT_EXPORT_SIZES"]
 
 SIZE_KEYS = {"array": "array_riscv_bytes", "tl2cgen": "tl2cgen_riscv_bytes"}
 HOST_SIZE_KEYS = {"array": "array_host_bytes", "tl2cgen": "tl2cgen_host_bytes"}
@@ -92,6 +92,19 @@ class PrunePoint:
         return cls(int(cfg["classifier"].get("n_estimators", 60)), int(cfg["classifier"].get("max_depth", 5)),
                    int(cfg["regressor"].get("n_estimators", 40)), int(cfg["regressor"].get("max_depth", 4)),
                    int(cfg["run"].get("max_features", 0) or 0), reference)
+
+
+#: The pruned point ``togglecf export --max-bytes N`` uses when no sweep exists: 10 trees of depth 4
+#: per booster (classifier and regressors), all features. Provenance: the 19-point pruning sweep of
+#: ``models/default`` (25 BROAD trials, 5 held-out folds, inner 3-fold CV; ``togglecf prune``) chose
+#: it for ``--max-bytes 32768``: 17.3 KiB of rv32imc array-format object code, held-out mean total
+#: RMSE 3.042° against 3.460° unpruned. It is not re-chosen per model: ``--full-sweep`` does that.
+DEFAULT_EXPORT_POINT = PrunePoint(10, 4, 10, 4, 0)
+
+#: The default point's sizes measured in that sweep [bytes] (17.3 KiB array, 58.5 KiB TL2cgen,
+#: rv32imc ``-Os``; the host's are similar): a budget below them cannot be met without a sweep.
+DEFAULT_EXPORT_SIZES = {"array_riscv_bytes": 17715, "tl2cgen_riscv_bytes": 59904,
+                        "array_host_bytes": 17715, "tl2cgen_host_bytes": 59904}
 
 
 def default_points(cfg: dict, trees=(10, 20, 30), depths=(3, 4), features=(0, 24, 12)) -> list:
@@ -173,19 +186,13 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
     workers, and ``out_dir`` must be on a file system the workers share (each task writes its
     fold's model directory there). Results do not depend on where the tasks ran."""
     riscv = riscv and shutil.which(RISCV_GCC) is not None
-    bundle = load_bundle(model_dir)
-    cfg0 = load_config(bundle.metadata["config"])
-    cfg0["gains"].update(learn=True, modes=["9d"])
-    cfg0["run"]["cv_folds"] = inner_folds
-    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
-    names = index.select(",".join(bundle.metadata["training_trials"]))
+    cfg0, index, names, identity = _sweep_setup(model_dir, data_dir, folds, inner_folds)
     points = list(points or default_points(cfg0))
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     rows_path = out / "sweep_rows.jsonl"
     test_sets = trial_folds(names, folds)
     backend = backend or InlineBackend()
-    identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
     key = lambda p: f"{identity}/{p.key}"  # noqa: E731  (a point of this very sweep)
     with ResultStore(rows_path, required=("row", "per_trial")) as store:
         todo = [p for p in points if key(p) not in store.done]
@@ -219,6 +226,30 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
                 f"rv32 array {_kib(row['array_riscv_bytes'])}, tl2cgen {_kib(row.get('tl2cgen_riscv_bytes'))} "
                 f"({row['seconds']:.0f} s)")
         return [store.done[key(p)]["row"] for p in points]
+
+
+def _sweep_setup(model_dir, data_dir, folds, inner_folds):
+    """The sweep's training config, data index, trials and identity (the journal's key prefix)."""
+    bundle = load_bundle(model_dir)
+    cfg0 = load_config(bundle.metadata["config"])
+    cfg0["gains"].update(learn=True, modes=["9d"])
+    cfg0["run"]["cv_folds"] = inner_folds
+    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    names = index.select(",".join(bundle.metadata["training_trials"]))
+    identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
+    return cfg0, index, names, identity
+
+
+def existing_sweep_rows(model_dir, out_dir, folds: int = 5, inner_folds: int = 3, data_dir=None) -> list:
+    """The rows already in ``out_dir/sweep_rows.jsonl`` for this model directory's sweep (same config,
+    trials, folds and data files), whatever points they are; ``[]`` when there are none. Computes
+    nothing (``togglecf export --max-bytes`` without ``--full-sweep``)."""
+    rows_path = Path(out_dir) / "sweep_rows.jsonl"
+    if not rows_path.is_file():
+        return []
+    identity = _sweep_setup(model_dir, data_dir, folds, inner_folds)[3]
+    with ResultStore(rows_path, required=("row", "per_trial")) as store:
+        return [rec["row"] for k, rec in store.done.items() if k.startswith(f"{identity}/")]
 
 
 def _kib(v) -> str:

@@ -11,9 +11,12 @@ files' identities). A second run with the same journal computes only the points 
 it; a changed file, filter setting or version computes anew. Floats are written with ``repr``, so
 resumed results are bit-identical to computed ones.
 
-Failures: a trial that cannot be loaded (missing on a worker, corrupt file) or a task that fails
-after its retries becomes a failure record (trial -> error message); the other tasks go on. The
-points it leaves out are listed in ``SweepResult.missing``.
+Failures: a trial that cannot be loaded or evaluated (missing on a worker, corrupt file, too short,
+too many non-finite samples: ``data.broad.load_trial``, ``check_evaluable``) or a task that fails after its retries
+becomes a failure record (trial -> error message, a ``DataError``'s naming file, field and problem);
+the other tasks go on. The points it leaves out are listed in ``SweepResult.missing``;
+``format_failures`` gives one line per failed trial. Non-finite IMU samples of the trials that were
+evaluated are counted in ``SweepResult.invalid`` (trial -> counts per field and in total).
 """
 from __future__ import annotations
 
@@ -25,12 +28,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from togglecf import __version__
+from togglecf.data.broad import DataError, check_evaluable
 from togglecf.metrics.broad import TagpResult, tagp
 from togglecf.parallel.backend import Backend, LocalBackend, load_trial_cached, trial_identity
 from togglecf.registry import filter_spec
 from togglecf.run.scoring import TrialResult, grid_points, score_trial, warm_up
 
-__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path"]
+__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path",
+           "format_failures"]
 
 SWEEP_VERSION = f"togglecf-{__version__}/sweep-1"
 JOURNAL = "sweep.jsonl"
@@ -93,21 +98,42 @@ class ResultStore:
 @dataclass
 class SweepResult:
     """``results[i]``: trial -> TrialResult for ``params_list[i]`` (trials in the given order, failed
-    trials absent); ``failed``: trial -> error message; ``missing``: (trial, params) not computed."""
+    trials absent); ``failed``: trial -> error message; ``missing``: (trial, params) not computed;
+    ``invalid``: trial -> ``{"gyr": k, "acc": k, "mag": k, "samples": k}`` non-finite IMU samples
+    (``samples``: with any field bad) of the evaluated trials (absent for results resumed from a
+    journal written before the counts were recorded)."""
 
     results: list
     failed: dict = field(default_factory=dict)
     missing: list = field(default_factory=list)
     computed: int = 0
     reused: int = 0
+    invalid: dict = field(default_factory=dict)
+
+
+def _error_text(exc) -> str:
+    """A ``DataError`` names file, field and problem already; other errors get their type."""
+    return str(exc) if isinstance(exc, DataError) else f"{type(exc).__name__}: {exc}"
+
+
+def format_failures(failed: dict, files: dict | None = None) -> list[str]:
+    """One line per failed trial (``failed``: trial -> message), starting with the trial's file
+    (``files``: trial -> path) unless the message already does."""
+    lines = []
+    for name, msg in failed.items():
+        where = str(files.get(name, name)) if files else name
+        lines.append(str(msg) if str(msg).startswith(where) else f"{where}: {msg}")
+    return lines
 
 
 def _sweep_task(root, name, filter_name, params_list, use_mag):
     try:
-        trial = load_trial_cached(root, name)
+        trial = check_evaluable(load_trial_cached(root, name))
     except Exception as exc:  # reported as a failed trial; the sweep goes on
-        return {"load_error": f"{type(exc).__name__}: {exc}"}
-    return [score_trial(trial, filter_spec(filter_name, p, use_mag))[0] for p in params_list]
+        return {"load_error": _error_text(exc)}
+    invalid = {**trial.invalid, "samples": trial.n_invalid}
+    return {"results": [score_trial(trial, filter_spec(filter_name, p, use_mag))[0] for p in params_list],
+            "invalid": invalid}
 
 
 def _chunks(n_points, n_trials, workers, chunk_size):
@@ -136,7 +162,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
     extra = specs[0].identity() if specs else None
     ids = {n: trial_identity(index.available[n]) for n in names}
     keys = {(n, i): point_key(filter_name, use_mag, p, ids[n], extra) for n in names for i, p in enumerate(params_list)}
-    got = {}
+    got, invalid = {}, {}
     reused = 0
     if store is not None:
         for nk, k in keys.items():
@@ -144,6 +170,8 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
                 rec = store.done[k]
                 got[nk] = TrialResult(rec["trial"], tuple(rec["groups"]), rec["errors"], rec["us_per_sample"],
                                       rec["n_samples"], dict(params_list[nk[1]]))
+                if rec.get("invalid") is not None:
+                    invalid[nk[0]] = rec["invalid"]
         reused = len(got)
     tasks = []
     for n in names:
@@ -156,8 +184,8 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
     failed, computed = {}, 0
     for done, out in enumerate(backend.run(_sweep_task, tasks, desc=desc, unit="task"), 1):
         name, idx = out.key
-        if out.error is not None or isinstance(out.value, dict):
-            msg = out.value["load_error"] if out.error is None else f"{type(out.error).__name__}: {out.error}"
+        if out.error is not None or "load_error" in out.value:
+            msg = out.value["load_error"] if out.error is None else _error_text(out.error)
             if on_error == "raise":
                 if out.error is not None:
                     raise out.error
@@ -167,11 +195,13 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
                 store.write([{"failed": name, "error": msg, "params": [params_list[i] for i in idx]}])
         else:
             recs = []
-            for i, r in zip(idx, out.value):
+            invalid[name] = out.value["invalid"]
+            for i, r in zip(idx, out.value["results"]):
                 got[(name, i)] = r
                 recs.append({"key": keys[(name, i)], "trial": name, "filter": filter_name, "use_mag": use_mag,
                              "params": params_list[i], "trial_file": ids[name], "groups": list(r.groups),
-                             "errors": r.errors, "us_per_sample": r.us_per_sample, "n_samples": r.n_samples})
+                             "errors": r.errors, "us_per_sample": r.us_per_sample, "n_samples": r.n_samples,
+                             "invalid": invalid[name]})
             computed += len(idx)
             if store is not None:
                 store.write(recs)
@@ -179,7 +209,8 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
             on_result(done)
     results = [{n: got[(n, i)] for n in names if (n, i) in got} for i in range(len(params_list))]
     missing = [(n, params_list[i]) for n in names for i in range(len(params_list)) if (n, i) not in got]
-    return SweepResult(results, failed, missing, computed, reused)
+    invalid = {n: invalid[n] for n in names if n in invalid}
+    return SweepResult(results, failed, missing, computed, reused, invalid)
 
 
 def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=None, desc="evaluate",
@@ -210,7 +241,9 @@ def grid_search(index, names, filter_name, grid, use_mag=True, jobs=None, backen
                       desc=f"tune {filter_name}")
     complete = [n for n in names if all(n in res for res in sweep.results)]
     if not complete:
-        raise ValueError(f"no trial was evaluated at every grid point; failures: {sweep.failed}")
+        lines = format_failures(sweep.failed, index.available)
+        raise ValueError("no trial was evaluated at every grid point" + (
+            f"; {len(lines)} failed:\n  " + "\n  ".join(lines) if lines else ""))
     scored = {k: {n: res[n].errors for n in complete} for k, res in zip(keys, sweep.results)}
     result = tagp(grid, scored)
     result.failed = dict(sweep.failed)

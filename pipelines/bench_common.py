@@ -1,0 +1,95 @@
+"""What every ``pipelines/bench_*.py`` shares: the ``--quick``/``--out``/``--data`` options, where the
+mini data is, timing against VQF in the same run, and writing the result table (Markdown + CSV).
+
+Not a benchmark itself. Each benchmark's ``main(argv)`` returns a dict with ``rows`` (the table),
+``ratios`` (name -> time ÷ VQF's, measured in the same run on the same samples) and ``paths``
+(the written files, empty in quick mode without ``--out``).
+"""
+from __future__ import annotations
+
+import math
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from togglecf import __version__
+from togglecf.report.tables import markdown_table, write_table
+
+REPO = Path(__file__).resolve().parents[1]
+#: 14-s cuts of three real BROAD trials, shipped with the tests (``tests/data/README.md``)
+MINI_DIR = REPO / "tests" / "data" / "broad_mini"
+#: where the full runs write their tables (the docs include ``<name>.md``)
+BENCH_DIR = REPO / "reports" / "bench"
+
+
+def add_common_args(p, name: str):
+    p.add_argument("--quick", action="store_true",
+                   help="seconds, on the mini data in tests/data/broad_mini (the test suite runs this); "
+                   "writes a table only with --out")
+    p.add_argument("--data", metavar="DIR", default=None,
+                   help="BROAD directory (default: as `togglecf evaluate`; --quick: tests/data/broad_mini)")
+    p.add_argument("--out", metavar="PATH", default=None,
+                   help=f"table file: PATH.md and PATH.csv (default: reports/bench/{name}.md/.csv for a full run)")
+
+
+def data_dir(args):
+    """``--data``, else the mini directory in quick mode, else ``None`` (resolved as the CLI does)."""
+    if args.data:
+        return args.data
+    return str(MINI_DIR) if args.quick else None
+
+
+def out_path(args, name: str):
+    """Where the table goes: ``--out``; a full run without it: ``reports/bench/<name>``; quick: nowhere."""
+    if args.out:
+        return Path(args.out)
+    return None if args.quick else BENCH_DIR / name
+
+
+def best_interleaved(fns: dict, repeats: int) -> dict:
+    """Best wall time [s] of each callable over ``repeats`` rounds, alternating within each round
+    (load from other processes hits all alike), after one untimed warm-up round (JIT, caches)."""
+    for fn in fns.values():
+        fn()
+    best = {k: math.inf for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return best
+
+
+def vqf_batch(fs: float, gyr, acc, mag=None):
+    """A callable running ``vqf.VQF(1/fs).updateBatch`` (9D, or 6D without ``mag``) on the arrays."""
+    import vqf
+
+    g, a = np.ascontiguousarray(gyr, float), np.ascontiguousarray(acc, float)
+    m = None if mag is None else np.ascontiguousarray(mag, float)
+    if m is None:
+        return lambda: vqf.VQF(1.0 / fs).updateBatch(g, a)
+    return lambda: vqf.VQF(1.0 / fs).updateBatch(g, a, m)
+
+
+def context_note(what: str, args) -> str:
+    """One paragraph for the table file: what was measured, on which machine and load."""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"{what}. Measured {time.strftime('%Y-%m-%d %H:%M')} with togglecf {__version__} on "
+            f"{os.cpu_count()} cores ({platform.machine()}, Python {platform.python_version()}), load average "
+            f"{load:.1f} at the end{' (quick mode: mini data, not a measurement to quote)' if args.quick else ''}. "
+            "Ratios are against `vqf.VQF.updateBatch` timed in the same run on the same samples; they move "
+            "between runs by ±20 % or more on a shared machine.")
+
+
+def finish(name: str, args, rows, columns, title: str, notes=(), digits: int = 3, ratios=None) -> dict:
+    """Print the table, write it (``out_path``), return the result dict."""
+    print()
+    print(markdown_table(rows, columns, digits))
+    path = out_path(args, name)
+    paths = write_table(rows, path, columns, title, notes, digits) if path is not None else {}
+    if paths:
+        print(f"\nwrote {paths['md']} and {paths['csv']}")
+    return {"rows": rows, "ratios": dict(ratios or {}), "paths": paths}

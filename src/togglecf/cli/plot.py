@@ -8,7 +8,7 @@ import matplotlib
 import numpy as np
 
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
-from togglecf.registry import FILTER_NAMES, TOGGLING, FilterSpec
+from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
 __all__ = ["add_plot_parser"]
@@ -24,7 +24,7 @@ def _load_trial(args):
 
 
 def _estimate(trial, name, models, use_mag):
-    spec = FilterSpec(name, models=models if name == TOGGLING else None, use_mag=use_mag)
+    spec = FilterSpec(name, models=models if name in TRAINED else None, use_mag=use_mag)
     f = spec.build(trial.fs)
     return f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None).quat
 
@@ -39,8 +39,9 @@ def _estimates(args, trial) -> dict:
     bad = [n for n in names if n not in FILTER_NAMES]
     if bad:
         raise ValueError(f"unknown filter {bad[0]!r} in --filters; available: {', '.join(FILTER_NAMES)}")
-    if TOGGLING in names and not args.models:
-        raise ValueError("--filters toggling needs --models DIR (a `togglecf train` model directory)")
+    trained = [n for n in names if n in TRAINED]
+    if trained and not args.models:
+        raise ValueError(f"--filters {trained[0]} needs --models DIR (a `togglecf train` model directory)")
     return {n: _estimate(trial, n, args.models, not args.six_d) for n in names}
 
 

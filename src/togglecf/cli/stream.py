@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 
 from togglecf.live.stream import OUTPUT_HEADER, TIME_UNITS, StreamConfig, StreamProcessor, file_chunks, serial_chunks
-from togglecf.registry import FILTER_NAMES, TOGGLING, FilterSpec
+from togglecf.registry import FILTER_NAMES, TRAINED, FilterSpec
 
 __all__ = ["add_stream_parser"]
 
@@ -14,7 +14,7 @@ def cmd_stream(args):
         raise ValueError("give exactly one of --port DEVICE or --input FILE|-")
     cfg = StreamConfig(fs=args.fs, time_unit=args.time_unit, units=args.units, use_mag=not args.six_d,
                        rate=args.rate, max_gap=args.max_gap, precision=args.precision)
-    spec = FilterSpec(args.filter, models=args.models if args.filter == TOGGLING else None, use_mag=not args.six_d)
+    spec = FilterSpec(args.filter, models=args.models if args.filter in TRAINED else None, use_mag=not args.six_d)
     filt = spec.build(args.fs)
     proc = StreamProcessor(filt, cfg)
     print(OUTPUT_HEADER, flush=True)

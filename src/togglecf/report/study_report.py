@@ -12,22 +12,37 @@ same as in ``report.plots``.
 from __future__ import annotations
 
 import io
+import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.stats import wilcoxon
 
 from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from togglecf.learn.labels import make_targets
 from togglecf.report.style import color, style
 
-__all__ = ["write_report", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
+__all__ = ["write_report", "rewrite_summary", "paired_comparison", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
 
-MAIN_FILTERS = ("toggling", "vqf", "madgwick", "cf", "mahony", "aqua", "ekf")
+MAIN_FILTERS = ("vqf_toggling", "toggling", "vqf", "vqf_core_defaults", "vqf_core", "madgwick", "madgwick_rest_bias",
+                "cf", "mahony", "aqua", "ekf")
+#: what each row of the study is (summary tables)
+LABELS = {"vqf_toggling": "VQF core + learned time constants (models in the loop)",
+          "toggling": "toggling CF (models in the loop)", "vqf": "VQF (vqf package, defaults)",
+          "vqf_core_defaults": "VQF core (ours) at VQF's defaults = learning off",
+          "vqf_core": "VQF core at its fold TAGP (τ_acc × τ_mag)", "madgwick": "Madgwick (fold TAGP)",
+          "madgwick_rest_bias": "Madgwick, initial-rest gyro bias removed (fold TAGP)", "cf": "fixed-gain CF (fold TAGP)",
+          "mahony": "Mahony (fold TAGP)", "aqua": "AQUA (fold TAGP)", "ekf": "error-state KF (fold TAGP)"}
 #: filters drawn in ``error_<trial>.png`` (back to front) and, in this order, in ``groups.png``
-ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling")
-ABLATION_ROWS = ("toggling", "toggling_only", "noise_only", "ransac_off", "toggling_6d", "cf_6d", "madgwick_6d",
-                 "vqf_6d")
+ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling", "vqf_toggling")
+ABLATION_ROWS = ("vqf_core_defaults", "vqf_taus_only", "vqf_toggling", "vqf_oracle", "toggling", "toggling_only",
+                 "noise_only", "ransac_off", "toggling_6d", "cf_6d", "madgwick_6d", "vqf_6d")
+#: paired per-trial comparisons in the summary: (filter, other)
+PAIRS = (("vqf_toggling", "vqf"), ("vqf_toggling", "vqf_core"), ("vqf_toggling", "vqf_core_defaults"),
+         ("vqf_toggling", "madgwick"), ("toggling", "vqf"), ("toggling", "madgwick"))
+#: |difference| [deg] of a trial's total RMSE below which the pair counts as a tie on that trial
+TIE_DEG = 0.01
 
 
 def group_table(df: pd.DataFrame, groups: dict, metric: str = "total") -> pd.DataFrame:
@@ -84,13 +99,14 @@ def _summary(df, per_group, result) -> str:
     if result["missing"]:
         lines += [f"Trials not present ({len(result['missing'])} of BROAD's 39): " + ", ".join(result["missing"]), ""]
     mains = [f for f in MAIN_FILTERS if f in wide.columns]
-    lines += ["## Mean over all trials", "", "| filter | total | heading | inclination | µs/sample (median) |",
-              "|---|---|---|---|---|"]
+    lines += ["## Mean over all trials", "", "| filter | what | total | heading | inclination | µs/sample (median) |",
+              "|---|---|---|---|---|---|"]
     for f in mains:
         sub = df[df["filter"] == f]
-        lines.append(f"| {f} | {sub['total'].mean():.2f} | {sub['heading'].mean():.2f} | "
+        lines.append(f"| {f} | {LABELS.get(f, f)} | {sub['total'].mean():.2f} | {sub['heading'].mean():.2f} | "
                      f"{sub['inclination'].mean():.2f} | {_fmt(speed.get(f, np.nan))} |")
     lines.append("")
+    lines += paired_comparison(wide)
     tot = per_group["total"]
     if "toggling" in tot:
         lines += ["## Toggling CF vs Madgwick, fixed CF and VQF per BROAD group (total RMSE)", "",
@@ -108,21 +124,77 @@ def _summary(df, per_group, result) -> str:
     if len(abl) > 1:
         lines += ["## Ablations (mean total RMSE over all trials; 6D rows with the heading offset removed)", "",
                   "| variant | total |", "|---|---|"]
-        desc = {"toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
+        desc = {"vqf_core_defaults": "VQF core alone (learning off)",
+                "vqf_taus_only": "VQF core + learned time constants (no noise removal)",
+                "vqf_toggling": "VQF core + learned time constants + noise removal (the learned filter)",
+                "vqf_oracle": "VQF core + time constants learned and driven by the TRUE motion state (oracle)",
+                "toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
                 "noise_only": "noise removal only (one gain, no rest bias)", "ransac_off": "both, models without RANSAC",
                 "toggling_6d": "both, 6D", "cf_6d": "fixed CF, 6D", "madgwick_6d": "Madgwick, 6D", "vqf_6d": "VQF, 6D"}
         for a in abl:
             lines.append(f"| {desc.get(a, a)} | {wide[a].mean():.2f} |")
         lines.append("")
+    if "vqf_toggling" in tot:
+        cmp = pd.DataFrame(index=tot.index)
+        for f in ("vqf_toggling", "vqf_oracle", "vqf", "vqf_core"):
+            if f in tot:
+                cmp[f] = tot[f]
+        for f in ("vqf", "vqf_core"):
+            if f in tot:
+                cmp[f"Δ {f}"] = tot["vqf_toggling"] - tot[f]
+        if "vqf_oracle" in tot:
+            cmp["Δ oracle"] = tot["vqf_oracle"] - tot["vqf_toggling"]
+        cmp["n_trials"] = tot["n_trials"]
+        lines += ["## VQF core + learned time constants vs VQF per BROAD group (total RMSE)", "",
+                  "Δ vqf / vqf_core = learned − VQF (package defaults / core at its fold TAGP); Δ oracle = oracle − "
+                  "learned (how much a perfect motion-state classifier would change).", "",
+                  _md_table(cmp, list(cmp.columns), "group"), ""]
     lines += ["## Folds", ""]
     for fi in result["folds"]:
         tagp = ", ".join(f"{k} {v['params']}" for k, v in fi.get("baseline_tagp", {}).items())
         lines.append(f"- fold {fi['fold']}: test {', '.join(fi['test'])}; models {fi['train_s']:.0f} s, gains "
-                     f"{fi['gains_s']:.0f} s; learned gains {fi['gains']}; baseline TAGPs: {tagp}")
+                     f"{fi['gains_s']:.0f} s; learned gains {fi['gains']}; learned VQF time constants "
+                     f"{fi.get('vqf_gains', '-')}; baseline TAGPs: {tagp}")
     lines += ["", f"Total time {result['timing']['total_s']:.0f} s (baseline grids "
               f"{result['timing']['baseline_grids_s']:.0f} s).", ""]
     lines += ["## Per trial (total RMSE)", "", _md_table(wide[[c for c in mains]], mains, "trial"), ""]
     return "\n".join(lines)
+
+
+def paired_comparison(wide: pd.DataFrame) -> list[str]:
+    """Markdown lines: for each pair of ``PAIRS`` present, per-trial wins/ties/losses of the first
+    filter (total RMSE, tie band ``TIE_DEG``), the mean difference and the two-sided Wilcoxon
+    signed-rank p over the trials both ran (a p ≥ 0.05 is no evidence of a difference: a tie)."""
+    rows = []
+    for a, b in PAIRS:
+        if a not in wide or b not in wide:
+            continue
+        both = wide[[a, b]].dropna()
+        d = (both[a] - both[b]).to_numpy()
+        if len(d) < 2:
+            continue
+        wins, losses = int(np.sum(d < -TIE_DEG)), int(np.sum(d > TIE_DEG))
+        p = float(wilcoxon(d).pvalue) if np.any(d != 0) else 1.0
+        verdict = ("tie (p ≥ 0.05)" if p >= 0.05 else (f"{a} better" if np.mean(d) < 0 else f"{b} better"))
+        rows.append(f"| {a} vs {b} | {len(d)} | {wins} / {len(d) - wins - losses} / {losses} | {np.mean(d):+.2f} | "
+                    f"{p:.3g} | {verdict} |")
+    if not rows:
+        return []
+    return ["## Paired per-trial comparison (total RMSE)", "",
+            f"Wins / ties / losses of the first filter (tie: |Δ| < {TIE_DEG}°), mean Δ = first − second [°], "
+            "two-sided Wilcoxon signed-rank p over the trials.", "",
+            "| pair | trials | wins / ties / losses | mean Δ | p | verdict |", "|---|---|---|---|---|---|", *rows, ""]
+
+
+def rewrite_summary(out) -> Path:
+    """Rewrite ``summary.md`` of a finished study in ``out`` from its ``per_trial.csv`` and
+    ``results.json`` (after a change of the report, without re-running the study)."""
+    out = Path(out)
+    df = pd.read_csv(out / "per_trial.csv")
+    result = json.loads((out / "results.json").read_text())
+    per_group = {m: group_table(df, result["groups"], m) for m in ("total", "heading", "inclination", "roll", "pitch",
+                                                                   "yaw", "us_per_sample") if m in df}
+    return atomic_write_text(out / "summary.md", _summary(df, per_group, result))
 
 
 def png_bytes(fig) -> bytes:

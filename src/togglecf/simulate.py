@@ -27,7 +27,9 @@ def imu_from_orientation(q, fs: float, *, name: str = "synthetic", gyro_noise: f
     """IMU signals for orientations ``q (N, 4)`` at ``fs`` [Hz].
 
     Args:
-        gyro_noise, acc_noise, mag_noise: white-noise standard deviations [rad/s, m/s², µT].
+        gyro_noise: white-noise standard deviation of the gyro [rad/s].
+        acc_noise: white-noise standard deviation of the accelerometer [m/s²].
+        mag_noise: white-noise standard deviation of the magnetometer [µT].
         gyro_bias: gyro bias [rad/s] (sensor frame): constant ``(3,)`` or per sample ``(N, 3)``
             (e.g. from ``random_walk_bias``).
         lin_acc_earth: ``(N, 3)`` linear acceleration of the sensor in ENU [m/s²], optional

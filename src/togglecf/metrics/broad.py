@@ -63,7 +63,8 @@ def trial_errors(q_est, q_ref, movement, six_d: bool = False) -> dict[str, float
     """RMSE [deg] of one trial: BROAD's total/heading/inclination plus roll/pitch/yaw.
 
     Args:
-        q_est, q_ref: ``(N, 4)`` estimate and ground truth (NaN rows in ``q_ref`` are ignored).
+        q_est: ``(N, 4)`` estimate.
+        q_ref: ``(N, 4)`` ground truth (NaN rows are ignored).
         movement: ``(N,)`` bool, the samples to score.
         six_d: remove the constant heading offset first (estimates without magnetometer).
     """

@@ -1,0 +1,217 @@
+"""The documentation: ``mkdocs build --strict`` passes, and every Python example runs.
+
+* ``test_mkdocs_build_strict`` builds the site (``mkdocs.yml``: Material theme, mkdocstrings, the
+  generated tables of ``docs/results/`` included with ``pymdownx.snippets``) into a temporary
+  directory and fails on any warning. Skipped, with the reason, only when the documentation tools
+  are not installed; CI installs the ``dev`` extra, which has them, so there it runs.
+* Every fenced ``python`` block of ``docs/**/*.md`` and ``README.md`` is executed by
+  ``test_python_block`` (in a temporary working directory, with ``TOGGLECF_DATA`` pointing at the
+  shipped mini BROAD cuts ``tests/data/broad_mini`` and ``models/default`` holding tiny models
+  trained on them with fixed gains), unless its first line is ``# not run: <reason>``.
+  ``test_blocks_are_run_or_say_why`` fails on a marker without a reason and on python code fenced
+  under another name, so no example escapes unnoticed.
+* ``test_generated_tables_name_their_run``: each file of ``docs/results/`` starts with the line
+  naming the command and the run it was generated from.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+MINI_DIR = REPO / "tests" / "data" / "broad_mini"
+DOC_FILES = sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
+PYTHON_FENCES = {"python", "py", "python3"}
+NOT_RUN = re.compile(r"^#\s*not run:(.*)$")
+FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})\s*(?P<info>[^\s`{]*)")
+
+
+def code_blocks(path: Path):
+    """``[(info, first line number, code)]`` of the fenced code blocks of a Markdown file."""
+    blocks, lines = [], path.read_text(encoding="utf-8").splitlines()
+    i = 0
+    while i < len(lines):
+        m = FENCE.match(lines[i])
+        if not m:
+            i += 1
+            continue
+        fence, indent, start = m["fence"], len(m["indent"]), i + 1
+        body = []
+        i += 1
+        while i < len(lines) and not lines[i].strip().startswith(fence):
+            body.append(lines[i][indent:] if lines[i][:indent].strip() == "" else lines[i])
+            i += 1
+        blocks.append((m["info"].lower(), start, "\n".join(body) + "\n"))
+        i += 1
+    return blocks
+
+
+def python_blocks():
+    out = []
+    for path in DOC_FILES:
+        for info, line, code in code_blocks(path):
+            if info in PYTHON_FENCES:
+                out.append((path.relative_to(REPO).as_posix(), line, code))
+    return out
+
+
+def _is_marked(code: str) -> bool:
+    first = code.lstrip("\n").splitlines()[0] if code.strip() else ""
+    return bool(NOT_RUN.match(first))
+
+
+RUN_BLOCKS = [b for b in python_blocks() if not _is_marked(b[2])]
+
+
+def test_blocks_are_run_or_say_why():
+    blocks = python_blocks()
+    assert len(blocks) >= 10, f"expected the Python examples of the docs, found {len(blocks)}"
+    for rel, line, code in blocks:
+        first = code.lstrip("\n").splitlines()[0] if code.strip() else ""
+        m = NOT_RUN.match(first)
+        if m:
+            assert m.group(1).strip(), f"{rel}:{line}: '# not run:' needs a reason"
+    # python code fenced under another name would be neither run nor marked
+    for path in DOC_FILES:
+        for info, line, code in code_blocks(path):
+            if info in {"pycon", "ipython", "python-repl"}:
+                pytest.fail(f"{path.relative_to(REPO)}:{line}: fence `{info}`: use ```python (run by this test)")
+            if info == "" and re.search(r"^(from togglecf|import togglecf)", code, re.MULTILINE):
+                pytest.fail(f"{path.relative_to(REPO)}:{line}: Python code in a fence without a language")
+
+
+@pytest.fixture(scope="module")
+def docs_workdir(tmp_path_factory, tiny_model_dir):
+    """A working directory whose ``models/default`` holds the tiny models (trained on the mini
+    cuts) with fixed 9D and 6D gains, as ``togglecf train`` would leave them."""
+    from togglecf.filters.toggling import TogglingSettings
+    from togglecf.learn.compiled import CompiledModels
+    from togglecf.learn.models import load_bundle
+    from togglecf.toggling.gains import save_gains
+
+    work = tmp_path_factory.mktemp("docs_work")
+    models = work / "models" / "default"
+    shutil.copytree(tiny_model_dir, models)
+    compiled = CompiledModels.from_bundle(load_bundle(models))
+    s = len(compiled.class_names)
+    for use_mag in (True, False):
+        settings = TogglingSettings(states=tuple(compiled.class_names), static_state=compiled.static_state,
+                                    alpha_acc=(0.001,) * s, alpha_mag=(0.0005,) * s if use_mag else (0.0,) * s)
+        save_gains(models, settings, ["fixed-in-test"], [], use_mag=use_mag, predictions="none (fixed in the test)")
+    return work
+
+
+@pytest.mark.parametrize("rel,line,code", RUN_BLOCKS, ids=[f"{r}:{n}" for r, n, _ in RUN_BLOCKS])
+def test_python_block(rel, line, code, docs_workdir, monkeypatch):
+    monkeypatch.setenv("TOGGLECF_DATA", str(MINI_DIR))
+    monkeypatch.setenv("TOGGLECF_PROGRESS", "0")
+    monkeypatch.chdir(docs_workdir)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    namespace = {"__name__": "__docs__"}
+    try:
+        exec(compile(code, f"{rel}:{line}", "exec"), namespace)  # noqa: S102 (the examples are ours)
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close("all")
+
+
+def _docs_tools_missing():
+    for mod in ("mkdocs", "material", "mkdocstrings", "mkdocstrings_handlers.python", "pymdownx"):
+        try:
+            if importlib.util.find_spec(mod) is None:
+                return mod
+        except ModuleNotFoundError:
+            return mod
+    return None
+
+
+@pytest.mark.slow
+def test_mkdocs_build_strict(tmp_path):
+    missing = _docs_tools_missing()
+    if missing:
+        pytest.skip(f"the documentation tools are not installed ({missing} missing): pip install -e '.[dev]'")
+    env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--config-file", str(REPO / "mkdocs.yml"),
+                        "--site-dir", str(tmp_path / "site")], cwd=REPO, capture_output=True, text=True, env=env,
+                       timeout=600, check=False)
+    log = r.stdout + r.stderr
+    assert r.returncode == 0, f"mkdocs build --strict failed:\n{log[-6000:]}"
+    warnings = [ln for ln in log.splitlines() if "WARNING" in ln]
+    assert not warnings, "\n".join(warnings)
+    assert (tmp_path / "site" / "index.html").is_file()
+    # the generated tables made it into the pages, and the API reference was rendered
+    study = (tmp_path / "site" / "guide" / "study" / "index.html").read_text(encoding="utf-8")
+    assert "Generated by" in study
+    api = (tmp_path / "site" / "api" / "filters" / "index.html").read_text(encoding="utf-8")
+    assert "togglecf.filters.MadgwickFilter" in api
+
+
+def test_generated_tables_name_their_run():
+    results = sorted((REPO / "docs" / "results").glob("*.md"))
+    assert results, "docs/results/ is empty: run python pipelines/regenerate_docs.py"
+    for p in results:
+        first = p.read_text(encoding="utf-8").splitlines()[0]
+        assert first.startswith("*Generated by `python pipelines/regenerate_docs.py"), f"{p.name}: {first!r}"
+
+
+def test_pages_include_only_existing_generated_tables():
+    """Every ``--8<--`` include names a file that exists (mkdocs fails on it too, but this
+    test runs without the documentation tools)."""
+    pattern = re.compile(r'^--8<-- "([^"]+)"', re.MULTILINE)
+    for path in DOC_FILES:
+        for inc in pattern.findall(path.read_text(encoding="utf-8")):
+            assert (REPO / inc).is_file(), f"{path.relative_to(REPO)} includes {inc}, which does not exist"
+
+
+def test_regenerate_docs_from_a_study_and_a_sweep(tmp_path):
+    """The generator on small stand-in outputs: every table names its run; numbers come from
+    the files."""
+    import json
+
+    import pandas as pd
+
+    study = tmp_path / "study"
+    study.mkdir()
+    rows = []
+    for t in ("02_a", "07_b"):
+        for f, v in (("toggling", 2.0), ("madgwick", 3.0), ("vqf", 1.5), ("cf", 8.0), ("toggling_only", 2.5)):
+            rows.append(dict(trial=t, filter=f, fold=0, us_per_sample=0.5, total=v, heading=v / 2,
+                             inclination=v / 3, roll=v, pitch=v, yaw=v, params=""))
+    pd.DataFrame(rows).to_csv(study / "per_trial.csv", index=False)
+    pd.DataFrame([dict(metric="total", group="all_trials", toggling=2.0, madgwick=3.0, vqf=1.5, cf=8.0,
+                       n_trials=2)]).to_csv(study / "per_group.csv", index=False)
+    (study / "results.json").write_text(json.dumps({
+        "trials": ["02_a", "07_b"], "timing": {"total_s": 60.0},
+        "folds": [{"fold": 0, "test": ["02_a"], "gains": {"gamma": 1.0}, "baseline_tagp": {"madgwick": {
+            "params": {"beta": 0.08}}}}]}))
+    sweep = tmp_path / "embedded" / "sweep"
+    sweep.mkdir(parents=True)
+    pd.DataFrame([dict(key="a", reference=True, clf_trees=60, clf_depth=5, reg_trees=40, reg_depth=4,
+                       max_features=0, mean_total=3.46, array_riscv_bytes=130000, pareto=False),
+                  dict(key="b", reference=False, clf_trees=10, clf_depth=4, reg_trees=10, reg_depth=4,
+                       max_features=12, mean_total=3.04, array_riscv_bytes=17000, pareto=True)]
+                 ).to_csv(sweep / "sweep.csv", index=False)
+    out = tmp_path / "results"
+    r = subprocess.run([sys.executable, str(REPO / "pipelines" / "regenerate_docs.py"), "--study", str(study),
+                        "--sweep", str(sweep), "--out", str(out)], capture_output=True, text=True, cwd=REPO, check=False)
+    assert r.returncode == 0, r.stderr
+    summary = (out / "study_summary.md").read_text()
+    assert summary.startswith("*Generated by `python pipelines/regenerate_docs.py --study")
+    assert "2 BROAD trials" in summary and "| 2.00 |" in summary
+    assert "-1.00" in (out / "study_groups.md").read_text()            # toggling − madgwick
+    assert "1.00° better" in (out / "study_highlights.md").read_text()
+    sw = (out / "sweep.md").read_text()
+    assert "**10 × 4, 12**" in sw and "-0.42" in sw                     # Pareto point, Δ vs unpruned
+    assert "Not generated yet" in (out / "embedded_sizes.md").read_text()
+    for p in out.glob("*.md"):
+        assert p.read_text().startswith("*Generated by `python pipelines/regenerate_docs.py"), p.name

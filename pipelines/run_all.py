@@ -1,7 +1,7 @@
 """The full held-out study: train with CV folds, evaluate all filters, write the report.
 
-    python pipelines/run_all.py [--data DIR] [--out reports/study] [--config pipelines/configs/study.toml]
-                                [--trials 01,02,...] [--folds K]
+    python pipelines/run_all.py [--data DIR] [--out reports/study] [--config TOML (default togglecf/configs/study.toml)]
+                                [--trials 01,02,...] [--folds K] [--fold-seed N] [--ablations LIST]
 
 Writes reports/study/{summary.md, per_trial.csv, per_trial_total.csv, per_group.csv, results.json,
 plots/*.png, folds/fold<k>/models/} (see togglecf.run.study and togglecf.report.study_report).
@@ -21,10 +21,16 @@ def main(argv=None):
     p.add_argument("--config", default=str(DEFAULT_STUDY_CONFIG), metavar="TOML")
     p.add_argument("--trials", metavar="LIST")
     p.add_argument("--folds", type=int)
+    p.add_argument("--fold-seed", type=int, help="another fold assignment (0: the standard one)")
+    p.add_argument("--ablations", help="comma-separated subset of the config's ablations ('' for none)")
     args = p.parse_args(argv)
     cfg = load_study_config(args.config)
     if args.folds:
         cfg = replace(cfg, folds=args.folds)
+    if args.fold_seed is not None:
+        cfg = replace(cfg, fold_seed=args.fold_seed)
+    if args.ablations is not None:
+        cfg = replace(cfg, ablations=tuple(a for a in args.ablations.split(",") if a))
     run_study(cfg, data_dir=args.data, out_dir=args.out, trials=args.trials)
     return 0
 

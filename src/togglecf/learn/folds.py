@@ -16,9 +16,13 @@ from sklearn.model_selection import GroupKFold
 __all__ = ["trial_folds", "window_group_folds"]
 
 
-def trial_folds(names, k: int) -> list[list[str]]:
-    """``k`` test sets by whole trial: round-robin over the sorted names (deterministic)."""
+def trial_folds(names, k: int, seed: int = 0) -> list[list[str]]:
+    """``k`` test sets by whole trial: round-robin over the sorted names (deterministic). Another
+    ``seed`` > 0 shuffles the sorted names first (with ``numpy.random.default_rng(seed)``): another
+    fold assignment, to measure how much the results move with it."""
     names = sorted(names)
+    if seed:
+        names = [names[i] for i in np.random.default_rng(seed).permutation(len(names))]
     if not 2 <= k <= len(names):
         raise ValueError(f"need 2 <= folds <= number of trials ({len(names)}), got {k}")
     return [names[i::k] for i in range(k)]

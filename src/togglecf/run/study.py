@@ -66,6 +66,8 @@ class StudyConfig:
         vqf_gains: the VQF core's learned-time-constant search (``[gains.vqf]`` of ``train_config``).
         ablations: which of ``ABLATIONS`` to run.
         jobs: worker processes.
+        fold_seed: 0 for the standard fold assignment, another value for a shuffled one
+            (``learn.folds.trial_folds``; the spread of the results over assignments).
     """
 
     folds: int = 5
@@ -77,6 +79,7 @@ class StudyConfig:
     vqf_gains: VQFGainSearch = field(default_factory=VQFGainSearch)
     ablations: tuple = ABLATIONS
     jobs: int = 0
+    fold_seed: int = 0
 
 
 def load_study_config(path=None) -> StudyConfig:
@@ -84,7 +87,7 @@ def load_study_config(path=None) -> StudyConfig:
     with open(path, "rb") as f:
         raw = tomllib.load(f)
     st = raw.get("study", {})
-    unknown = set(st) - {"folds", "inner_folds", "train_config", "ablations", "jobs"}
+    unknown = set(st) - {"folds", "inner_folds", "train_config", "ablations", "jobs", "fold_seed"}
     if unknown:
         raise ValueError(f"{path}: [study] unknown key(s) {sorted(unknown)}")
     train_config = st.get("train_config", "default.toml")
@@ -104,7 +107,7 @@ def load_study_config(path=None) -> StudyConfig:
         raise ValueError(f"{path}: unknown ablation(s) {sorted(bad)}; known: {list(ABLATIONS)}")
     return StudyConfig(folds=int(st.get("folds", 5)), inner_folds=int(st.get("inner_folds", 3)), train_config=train_config, baselines=grids("baselines"),
                        baselines_6d=grids("baselines_6d"), gains=search, vqf_gains=vqf_search, ablations=ablations,
-                       jobs=int(st.get("jobs", 0)))
+                       jobs=int(st.get("jobs", 0)), fold_seed=int(st.get("fold_seed", 0)))
 
 
 log = logging.getLogger(__name__)
@@ -186,7 +189,7 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
     names = index.select(trials)
     log.info(index.summary())
-    folds = trial_folds(names, cfg.folds)
+    folds = trial_folds(names, cfg.folds, cfg.fold_seed)
     loaded = {n: index.load(n) for n in names}
     timing = {}
 

@@ -39,36 +39,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+from togglecf.report.study_report import (ABLATION_LABELS, ABLATION_ROWS, LABELS, MAIN_FILTERS,
+                                          paired_comparison)
+
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = "python pipelines/regenerate_docs.py"
 
-#: Filters of the study as the tables name them.
-LABELS = {
-    "toggling": "toggling CF (models + learned gains, held out)",
-    "vqf": "VQF (defaults, not tuned)",
-    "madgwick": "Madgwick (fold TAGP)",
-    "cf": "fixed-gain CF (fold TAGP)",
-    "mahony": "Mahony (fold TAGP)",
-    "aqua": "AQUA (fold TAGP)",
-    "ekf": "error-state KF (fold TAGP)",
-    "vqf_toggling": "VQF core with learned time constants (held out)",
-    "vqf_core": "VQF core (fold TAGP of τ_acc × τ_mag)",
-    "vqf_core_defaults": "VQF core (VQF's defaults)",
-}
-MAIN_FILTERS = tuple(LABELS)
-ABLATIONS = {
-    "toggling": "toggling + noise removal (the filter)",
-    "toggling_only": "toggling only (η̂ = 0)",
-    "noise_only": "noise removal only (one gain, no rest bias)",
-    "ransac_off": "both, models trained without RANSAC",
-    "toggling_6d": "toggling CF, 6D",
-    "cf_6d": "fixed CF, 6D",
-    "madgwick_6d": "Madgwick, 6D",
-    "vqf_6d": "VQF, 6D",
-    "vqf_taus_only": "VQF core, learned time constants only (no noise removal)",
-    "vqf_oracle": "VQF core, learned time constants driven by the true motion state (oracle)",
-    "madgwick_rest_bias": "Madgwick with the initial-rest gyro bias removed (fold TAGP)",
-}
+ABLATIONS = {a: ABLATION_LABELS.get(a, a) for a in ABLATION_ROWS}
 LEVEL = 0.05  # |Δ| [°] below which a group comparison is called level
 BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling")
 
@@ -190,9 +167,39 @@ def study_tables(study: Path, out: Path, command: str) -> None:
           "on the training trials, and each baseline's TAGP on the same training trials.\n\n"
           + md_table(["fold", "test trials", "learned gains", "baseline TAGPs"], frows))
 
+    paired = paired_comparison(wide)
+    if paired:
+        write(out, "study_paired.md", head + "\n" + "\n".join(paired[2:]))
     prow = [[t] + [fmt(wide.loc[t, f]) for f in mains] for t in wide.index]
     write(out, "study_per_trial.md", head + "\nTotal RMSE [°] per trial, each with models, gains and baseline "
           "parameters fitted without it.\n\n" + md_table(["trial"] + mains, prow))
+
+
+def spread_table(studies: list[Path], out: Path, command: str) -> None:
+    """``study_spread.md``: each filter's mean total RMSE in every fold assignment (one study output
+    each) and the mean ± standard deviation over the assignments."""
+    import pandas as pd
+
+    means = {}
+    for s in studies:
+        res = json.loads((s / "results.json").read_text())
+        df = pd.read_csv(s / "per_trial.csv")
+        seed = res.get("fold_seed", 0)
+        means[f"assignment {seed}"] = df.groupby("filter")["total"].mean()
+    table = pd.DataFrame(means)
+    order = [f for f in MAIN_FILTERS if f in table.index] + sorted(f for f in table.index if f not in MAIN_FILTERS)
+    rows = []
+    for f in order:
+        vals = table.loc[f].dropna()
+        if len(vals) < 2:
+            continue
+        rows.append([LABELS.get(f, f)] + [fmt(table.loc[f, c]) for c in table.columns]
+                    + [f"{vals.mean():.2f} ± {vals.std(ddof=1):.2f}"])
+    src = f"{len(studies)} study runs with different fold assignments ({', '.join(_shown(s) for s in studies)})"
+    write(out, "study_spread.md", header(command, src) + "\nMean total RMSE [°] over the held-out trials for "
+          "each fold assignment (5 folds by whole trial; assignment 0 is the standard round-robin, the others "
+          "a seeded shuffle), and mean ± sample standard deviation over the assignments. Differences smaller "
+          "than this spread are ties.\n\n" + md_table(["filter", *table.columns, "mean ± sd"], rows))
 
 
 def _compact(v) -> str:
@@ -396,6 +403,8 @@ def main(argv=None) -> int:
                    help="pruning sweep directory (default: build/embedded/default/sweep if present)")
     p.add_argument("--models", default=None, metavar="DIR",
                    help="trained model directory (default: models/default if present)")
+    p.add_argument("--spread", default=None, metavar="DIRS",
+                   help="comma-separated study outputs of different fold assignments -> study_spread.md")
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -410,6 +419,10 @@ def main(argv=None) -> int:
                      "study_folds.md", "study_per_trial.md"):
             placeholder(out, name, "The study output `reports/study/results.json`",
                         f"Run `make run`, then `{SCRIPT}`.")
+
+    if args.spread:
+        dirs = [Path(d) for d in args.spread.split(",") if d]
+        spread_table(dirs, out, f"{SCRIPT} --spread {args.spread}")
 
     models = Path(args.models) if args.models else REPO / "models" / "default"
     if (models / "cv_table.txt").is_file() and (models / "metadata.json").is_file():

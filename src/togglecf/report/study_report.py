@@ -23,7 +23,7 @@ from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write
 from togglecf.learn.labels import make_targets
 from togglecf.report.style import color, style
 
-__all__ = ["write_report", "rewrite_summary", "paired_comparison", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
+__all__ = ["MAIN_FILTERS", "LABELS", "ABLATION_ROWS", "ABLATION_LABELS", "write_report", "rewrite_summary", "paired_comparison", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
 
 MAIN_FILTERS = ("vqf_toggling", "toggling", "vqf", "vqf_core_defaults", "vqf_core", "madgwick", "madgwick_rest_bias",
                 "cf", "mahony", "aqua", "ekf")
@@ -38,6 +38,14 @@ LABELS = {"vqf_toggling": "VQF core + learned time constants (models in the loop
 ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling", "vqf_toggling")
 ABLATION_ROWS = ("vqf_core_defaults", "vqf_taus_only", "vqf_toggling", "vqf_oracle", "toggling", "toggling_only",
                  "noise_only", "ransac_off", "toggling_6d", "cf_6d", "madgwick_6d", "vqf_6d")
+#: what each ablation row is
+ABLATION_LABELS = {"vqf_core_defaults": "VQF core alone (learning off)",
+                   "vqf_taus_only": "VQF core + learned time constants (no noise removal)",
+                   "vqf_toggling": "VQF core + learned time constants + noise removal (the learned filter)",
+                   "vqf_oracle": "VQF core + time constants learned and driven by the TRUE motion state (oracle)",
+                   "toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
+                   "noise_only": "noise removal only (one gain, no rest bias)", "ransac_off": "both, models without RANSAC",
+                   "toggling_6d": "both, 6D", "cf_6d": "fixed CF, 6D", "madgwick_6d": "Madgwick, 6D", "vqf_6d": "VQF, 6D"}
 #: paired per-trial comparisons in the summary: (filter, other)
 PAIRS = (("vqf_toggling", "vqf"), ("vqf_toggling", "vqf_core"), ("vqf_toggling", "vqf_core_defaults"),
          ("vqf_toggling", "madgwick"), ("toggling", "vqf"), ("toggling", "madgwick"))
@@ -124,13 +132,7 @@ def _summary(df, per_group, result) -> str:
     if len(abl) > 1:
         lines += ["## Ablations (mean total RMSE over all trials; 6D rows with the heading offset removed)", "",
                   "| variant | total |", "|---|---|"]
-        desc = {"vqf_core_defaults": "VQF core alone (learning off)",
-                "vqf_taus_only": "VQF core + learned time constants (no noise removal)",
-                "vqf_toggling": "VQF core + learned time constants + noise removal (the learned filter)",
-                "vqf_oracle": "VQF core + time constants learned and driven by the TRUE motion state (oracle)",
-                "toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
-                "noise_only": "noise removal only (one gain, no rest bias)", "ransac_off": "both, models without RANSAC",
-                "toggling_6d": "both, 6D", "cf_6d": "fixed CF, 6D", "madgwick_6d": "Madgwick, 6D", "vqf_6d": "VQF, 6D"}
+        desc = ABLATION_LABELS
         for a in abl:
             lines.append(f"| {desc.get(a, a)} | {wide[a].mean():.2f} |")
         lines.append("")

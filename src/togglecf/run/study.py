@@ -292,6 +292,7 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
 
     timing["total_s"] = time.perf_counter() - t_start
     result = {"rows": rows, "folds": fold_info, "timing": timing, "trials": names, "missing": index.missing,
+              "fold_seed": cfg.fold_seed,
               "groups": index.groups}
     write_report(out, result, series, timelines, loaded)
     log.info(f"study done in {timing['total_s']:.0f} s; report in {out}/")

@@ -184,8 +184,8 @@ def spread_table(studies: list[Path], out: Path, command: str) -> None:
     for s in studies:
         res = json.loads((s / "results.json").read_text())
         df = pd.read_csv(s / "per_trial.csv")
-        seed = res.get("fold_seed", 0)
-        means[f"assignment {seed}"] = df.groupby("filter")["total"].mean()
+        label = f"assignment {res['fold_seed']}" if "fold_seed" in res else _shown(s)
+        means[label] = df.groupby("filter")["total"].mean()
     table = pd.DataFrame(means)
     order = [f for f in MAIN_FILTERS if f in table.index] + sorted(f for f in table.index if f not in MAIN_FILTERS)
     rows = []

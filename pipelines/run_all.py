@@ -1,6 +1,7 @@
 """The full held-out study: train with CV folds, evaluate all filters, write the report.
 
-    python pipelines/run_all.py [--data DIR] [--out reports/study] [--config TOML (default togglecf/configs/study.toml)]
+    python pipelines/run_all.py [--data DIR [--data DIR2 ...]] [--out reports/study]
+                                [--config TOML (default togglecf/configs/study.toml)]
                                 [--trials 01,02,...] [--folds K] [--fold-seed N] [--ablations LIST]
 
 Writes reports/study/{summary.md, per_trial.csv, per_trial_total.csv, per_group.csv, results.json,
@@ -16,7 +17,9 @@ from togglecf.run.study import DEFAULT_STUDY_CONFIG, load_study_config, run_stud
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", metavar="DIR")
+    p.add_argument("--data", metavar="DIR", action="append", default=None,
+                   help="data directory, repeatable (names become <dir name>/<trial>); default: [run] data of "
+                   "the study's train_config, else the default BROAD location")
     p.add_argument("--out", default="reports/study", metavar="DIR")
     p.add_argument("--config", default=str(DEFAULT_STUDY_CONFIG), metavar="TOML")
     p.add_argument("--trials", metavar="LIST")

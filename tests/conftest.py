@@ -95,9 +95,9 @@ max_depth = 3
 n_estimators = 4
 max_depth = 3
 [gains]
-alpha = [0.0002, 0.002]
-gamma = [1.0]
-bias_gain = [0.0, 0.001]
+tau = [17.5, 1.748]
+output_tau = [0.0]
+bias_tau = [-1.0, 3.498]
 mag_disturbance_scale = [0.0]
 sweeps = 1
 [gains.vqf]

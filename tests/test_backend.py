@@ -15,7 +15,7 @@ from test_data import make_broad_dir
 
 
 def _grid():
-    return [{"alpha": a} for a in (0.001, 0.002, 0.005, 0.01, 0.02)]
+    return [{"tau": t} for t in (3.498, 1.748, 0.6982, 0.3482, 0.1732)]
 
 
 class Stop(Exception):
@@ -84,7 +84,7 @@ def test_trial_that_fails_to_load_is_reported_and_the_sweep_goes_on(synth, tmp_p
     with pytest.raises(Exception):
         evaluate_trials(synth, names, "cf", params, jobs=1)
     out = tmp_path / "tune"
-    code = main(["tune", "--filter", "cf", "--grid", "alpha=0.001,0.01", "--data", str(synth.root), "--out", str(out)])
+    code = main(["tune", "--filter", "cf", "--grid", "tau=3.498,0.3482", "--data", str(synth.root), "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 3 and "03_c" in err and "failed" in err
     res = json.loads((out / "results.json").read_text())
@@ -94,7 +94,7 @@ def test_trial_that_fails_to_load_is_reported_and_the_sweep_goes_on(synth, tmp_p
 
 def test_cli_tune_resumes_from_its_out_dir(synth, tmp_path, capsys):
     out = tmp_path / "tune"
-    args = ["tune", "--filter", "cf", "--grid", "alpha=0.001,0.01", "--data", str(synth.root), "--out", str(out)]
+    args = ["tune", "--filter", "cf", "--grid", "tau=3.498,0.3482", "--data", str(synth.root), "--out", str(out)]
     assert main(args) == 0
     first = (out / "per_trial.csv").read_text()
     assert main(args) == 0
@@ -109,7 +109,7 @@ def test_backend_errors_are_clear(monkeypatch, synth, capsys):
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask were not installed
     with pytest.raises(be.BackendError, match=r"pip install 'togglecf\[dask\]'"):
         be.make_backend("dask", "tcp://127.0.0.1:8786")
-    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(synth.root),
+    assert main(["tune", "--filter", "cf", "--grid", "tau=0.3482", "--data", str(synth.root),
                  "--backend", "dask", "--scheduler", "tcp://127.0.0.1:8786"]) == 1
     assert "togglecf[dask]" in capsys.readouterr().err
 
@@ -117,7 +117,7 @@ def test_backend_errors_are_clear(monkeypatch, synth, capsys):
 def test_unreachable_scheduler_is_one_clear_line(monkeypatch, synth, capsys):
     pytest.importorskip("distributed", reason="dask.distributed not installed (pip install 'togglecf[dask]')")
     monkeypatch.setattr(be, "CONNECT_TIMEOUT_S", 1.0)
-    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(synth.root),
+    assert main(["tune", "--filter", "cf", "--grid", "tau=0.3482", "--data", str(synth.root),
                  "--backend", "dask", "--scheduler", "tcp://127.0.0.1:9"]) == 1
     err = capsys.readouterr().err
     assert "cannot reach Dask scheduler at tcp://127.0.0.1:9" in err and "dask scheduler" in err

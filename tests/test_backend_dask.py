@@ -137,7 +137,7 @@ def test_train_cv_on_dask_equals_local(broad_index, cluster, tmp_path):
     # the command line with the backend in the config's [run] table
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY_TRAIN_TOML.replace("[run]", f'[run]\nbackend = "dask"\nscheduler = "{client.scheduler.address}"')
-                   + "learn = false\n")  # [gains] is the last table
+                   .replace("[gains]\n", "[gains]\nlearn = false\n"))
     assert main(["train", "--config", str(cfg), "--data", str(broad_index.root), "--trials", TRIALS,
                  "--out", str(tmp_path / "cli")]) == 0
     meta = json.loads((tmp_path / "cli" / "metadata.json").read_text())

@@ -38,6 +38,8 @@ import pytest
 
 from togglecf.embedded import cfilter, toolchain
 from togglecf.core.quaternion import angle_between
+from togglecf.embedded.toolchain import c_float
+from togglecf.filters.timeconst import gain
 
 if shutil.which("gcc") is None:
     pytest.skip("gcc not installed: the C filter cannot be compiled", allow_module_level=True)
@@ -50,16 +52,18 @@ def _gains(class_names, static_state, use_mag):
     from togglecf.filters.toggling import TogglingSettings
 
     s = len(class_names)
-    base_a = (0.002, 0.0005, 0.0003, 0.0001, 0.0002, 0.0004)
-    base_m = (0.0005, 0.0002, 0.0001, 0.0003, 0.0002, 0.0001)
+    # time constants [s]; per sample at 285.714 Hz (0.002, 0.0005, 0.0003, 0.0001, 0.0002, 0.0004) and
+    # (0.0005, 0.0002, 0.0001, 0.0003, 0.0002, 0.0001); γ 0.6 / 1, bias gain 0.001 / 0.003
+    base_a = (1.748, 6.998, 11.66, 35.0, 17.5, 8.748)
+    base_m = (6.998, 17.5, 35.0, 11.66, 17.5, 35.0)
     if use_mag:  # exercises every step: η_a trees dropped (weight 0), η_m half-weighted, σ_m on, γ < 1
-        extra = dict(gamma=0.6, bias_gain=0.001, bias_gate=0.05, mag_disturbance_scale=10.0, noise_weight_acc=0.0,
-                     noise_weight_mag=0.5)
+        extra = dict(output_tau=0.00382, bias_tau=3.498, bias_gate=0.05, mag_disturbance_scale=10.0,
+                     noise_weight_acc=0.0, noise_weight_mag=0.5)
     else:
-        extra = dict(gamma=1.0, bias_gain=0.003, bias_gate=0.05, mag_disturbance_scale=0.0, noise_weight_acc=0.5,
+        extra = dict(output_tau=0.0, bias_tau=1.165, bias_gate=0.05, mag_disturbance_scale=0.0, noise_weight_acc=0.5,
                      noise_weight_mag=1.0)
-    return TogglingSettings(states=tuple(class_names), static_state=static_state, alpha_acc=base_a[:s],
-                            alpha_mag=base_m[:s], **extra)
+    return TogglingSettings(states=tuple(class_names), static_state=static_state, tau_acc=base_a[:s],
+                            tau_mag=base_m[:s], **extra)
 
 
 @pytest.fixture(scope="module")
@@ -298,6 +302,16 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
         assert f"#define TCF_WINDOW {L}" in config and f"#define TCF_USE_MAG {1 if mode == '9d' else 0}" in config
         assert rep["model_hash"] in config
         assert (Path(rep["out_dir"]) / "filter_report.json").is_file()
+        # gains.json holds time constants; the header gets the per-sample gains at the export rate
+        settings = _gains(rep["class_names"], rep["settings"]["static_state"], mode == "9d")
+        ts = 1.0 / rep["fs"]
+        want_a = [gain(t, ts) for t in settings.tau_acc]
+        assert f"#define TCF_ALPHA_ACC_INIT {{{', '.join(c_float(v) for v in want_a)}}}" in config
+        assert f"#define TCF_BIAS_GAIN {c_float(gain(settings.bias_tau, ts))}" in config
+        assert f"#define TCF_GAMMA {c_float(gain(settings.output_tau, ts))}" in config
+        np.testing.assert_allclose(rep["per_sample_gains"]["alpha_acc"], want_a, rtol=1e-12)
+        if mode == "9d":  # at BROAD's rate: the former per-sample gains the time constants were converted from
+            np.testing.assert_allclose(want_a[:2], [0.002, 0.0005], rtol=1e-3)
 
 
 def test_sources_compile_without_warnings(exported, tmp_path):

@@ -12,7 +12,7 @@ from togglecf.cli.main import main
 def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
     data = make_broad_dir(tmp_path / "b", ["01_a", "02_b"], ["01_a", "02_b", "03_c"])
     out = tmp_path / "report"
-    assert main(["evaluate", "--filter", "cf", "--param", "alpha=0.01", "--data", str(data), "--out", str(out),
+    assert main(["evaluate", "--filter", "cf", "--param", "tau=0.3482", "--data", str(data), "--out", str(out),
                  "--jobs", "1"]) == 0
     captured = capsys.readouterr()
     assert "01_a" in captured.out and "per BROAD group" in captured.out
@@ -21,7 +21,7 @@ def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
     assert list(per_trial.index) == ["01_a", "02_b"]
     assert {"total", "heading", "inclination", "roll", "pitch", "yaw", "us_per_sample"} <= set(per_trial.columns)
     res = json.loads((out / "results.json").read_text())
-    assert res["params"] == {"alpha": 0.01} and res["missing_trials"] == ["03_c"]
+    assert res["params"] == {"tau": 0.3482} and res["missing_trials"] == ["03_c"]
     assert pd.read_csv(out / "per_group.csv", index_col=0).loc["all_trials", "n_trials"] == 2
 
 
@@ -30,8 +30,8 @@ def test_errors_are_one_clear_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no BROAD data in" in err and "togglecf download" in err and "Traceback" not in err
     data = make_broad_dir(tmp_path / "b", ["01_a"], ["01_a"])
-    assert main(["evaluate", "--filter", "cf", "--param", "alpha=7", "--data", str(data)]) == 1
-    assert "alpha must be in [0, 1]" in capsys.readouterr().err
+    assert main(["evaluate", "--filter", "cf", "--param", "tau=nan", "--data", str(data)]) == 1
+    assert "CFSettings.tau must be finite" in capsys.readouterr().err
     assert main(["evaluate", "--filter", "cf", "--trials", "09", "--data", str(data)]) == 1
     assert "not listed" in capsys.readouterr().err
 
@@ -77,7 +77,7 @@ def test_failed_trials_one_line_each_and_invalid_samples_counted(tmp_path, capsy
 
 def test_all_trials_failed_is_an_error_with_one_line_per_trial(tmp_path, capsys):
     data = _bad_dir(tmp_path)
-    for cmd in (["evaluate", "--filter", "cf"], ["tune", "--filter", "cf", "--grid", "alpha=0.01,0.02"]):
+    for cmd in (["evaluate", "--filter", "cf"], ["tune", "--filter", "cf", "--grid", "tau=0.3482,0.1732"]):
         assert main([*cmd, "--data", str(data), "--trials", "02,03", "--jobs", "1"]) == 1
         err = capsys.readouterr().err
         assert "{" not in err and "Traceback" not in err
@@ -87,7 +87,7 @@ def test_all_trials_failed_is_an_error_with_one_line_per_trial(tmp_path, capsys)
     assert main(["evaluate", "--filter", "cf", "--data", str(data), "--trials", "02,03", "--jobs", "1"]) == 1
     assert "togglecf evaluate: error: no trial could be evaluated: all 2 selected trial(s) failed (listed above)" in \
         capsys.readouterr().err
-    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.01", "--data", str(data), "--trials", "02,03",
+    assert main(["tune", "--filter", "cf", "--grid", "tau=0.3482", "--data", str(data), "--trials", "02,03",
                  "--jobs", "1"]) == 1
     assert "togglecf tune: error: no trial was evaluated at every grid point; 2 failed:\n  " in capsys.readouterr().err
 
@@ -98,9 +98,9 @@ def test_evaluate_and_tune_on_real_trials(broad_index, tmp_path, capsys):
     assert main(["evaluate", "--filter", "cf", *args, "--out", str(tmp_path / "e")]) == 0
     per_trial = pd.read_csv(tmp_path / "e" / "per_trial.csv", index_col=0)
     assert len(per_trial) == 2 and (per_trial["us_per_sample"] > 0).all()
-    assert main(["tune", "--filter", "cf", "--grid", "alpha=0.0001,0.0003,0.01", *args]) == 0
+    assert main(["tune", "--filter", "cf", "--grid", "tau=35.0,11.66,0.3482", *args]) == 0
     out = capsys.readouterr().out
-    assert "TAGP of cf: {'alpha':" in out
+    assert "TAGP of cf: {'tau':" in out
 
 
 
@@ -125,5 +125,5 @@ def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, cap
         per_trial = pd.read_csv(out / "per_trial.csv", index_col=0)
         # a trained filter on a fast-rotation trial it never saw: far from the tens of degrees of a broken one
         assert per_trial.loc["07_undisturbed_fast_rotation_B", "total"] < 15.0
-    assert main(["evaluate", "--filter", "toggling", "--param", "alpha=0.1", "--models", str(models), *data]) == 1
+    assert main(["evaluate", "--filter", "toggling", "--param", "tau_acc=0.1", "--models", str(models), *data]) == 1
     assert "takes no --param" in capsys.readouterr().err

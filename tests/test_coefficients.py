@@ -22,6 +22,7 @@ from togglecf.filters.ekf import EKFFilter
 from togglecf.filters.gyro_only import GyroOnlyFilter
 from togglecf.filters.madgwick import MadgwickFilter
 from togglecf.filters.mahony import MahonyFilter
+from togglecf.filters.timeconst import gain
 from togglecf.filters.toggling import TogglingFilter
 
 FS = 285.714
@@ -81,7 +82,7 @@ def test_params_is_the_filters_coefficients_record(name, use_mag):
 
 
 def test_values_are_converted_to_the_declared_types():
-    f = ComplementaryFilter(FS, alpha=1, max_dt=1)  # ints from a config file
+    f = ComplementaryFilter(FS, tau=0, max_dt=1)  # ints from a config file (τ = 0: α = 1)
     assert f.params == (1.0, 1.0, 1.0) and all(type(v) is float for v in f.params)
     out = f.update_batch(np.zeros((3, 3)), np.tile([0.0, 0.0, 9.8], (3, 1)), np.tile([0.0, 20.0, -40.0], (3, 1)))
     assert np.all(np.isfinite(out.quat))
@@ -103,10 +104,11 @@ def test_a_record_without_the_common_fields_is_refused():
         type("BadFilter", (OrientationFilter,), {"Coefficients": Bad})
 
 
-def test_cf_alpha():
-    for a in (0.0, 0.00028, 0.3, 1.0):
-        assert ComplementaryFilter(FS, alpha=a).params.alpha == a
-    assert ComplementaryFilter(FS).params.alpha == ComplementaryFilter.Settings().alpha
+def test_cf_tau_gives_the_per_sample_alpha():
+    for tau in (-1.0, 0.0, 0.01, 12.5, 1000.0):
+        assert ComplementaryFilter(FS, tau=tau).params.alpha == gain(tau, 1.0 / FS)
+    assert (ComplementaryFilter(FS, tau=-1.0).params.alpha, ComplementaryFilter(FS, tau=0.0).params.alpha) == (0.0, 1.0)
+    assert ComplementaryFilter(FS).params.alpha == pytest.approx(0.00028, rel=1e-3)  # the former default
 
 
 def test_cf_alpha_drives_the_blend():
@@ -117,10 +119,10 @@ def test_cf_alpha_drives_the_blend():
     m = np.array([2.0, 20.0, -40.0]) + rng.standard_normal((400, 3))
     for use_mag in (True, False):
         mm = m if use_mag else None
-        np.testing.assert_allclose(ComplementaryFilter(FS, alpha=0.0, use_mag=use_mag).update_batch(g, a, mm).quat,
+        np.testing.assert_allclose(ComplementaryFilter(FS, tau=-1.0, use_mag=use_mag).update_batch(g, a, mm).quat,
                                    GyroOnlyFilter(FS, use_mag=use_mag).update_batch(g, a, mm).quat, atol=1e-12)
     # (in 6D the CF's α = 1 keeps the gyro's heading, the acc/mag filter holds the first one)
-    np.testing.assert_allclose(ComplementaryFilter(FS, alpha=1.0).update_batch(g, a, m).quat,
+    np.testing.assert_allclose(ComplementaryFilter(FS, tau=0.0).update_batch(g, a, m).quat,
                                AccMagFilter(FS).update_batch(g, a, m).quat, atol=1e-12)
 
 
@@ -135,7 +137,12 @@ def test_madgwick_and_mahony_gains():
 @pytest.mark.parametrize("cls", [AquaFilter, EKFFilter], ids=["aqua", "ekf"])
 def test_fields_named_after_settings_carry_them(cls):
     f = cls(FS)
+    per_sample = {"gain_acc": "tau_acc", "gain_mag": "tau_mag", "bias_alpha": "bias_tau"} if cls is AquaFilter else {}
+    for field, tau_name in per_sample.items():  # AQUA's gains: per sample from the time constants
+        assert getattr(f.params, field) == gain(getattr(f.settings, tau_name), 1.0 / FS), field
     for field in cls.Coefficients._fields[2:]:
+        if field in per_sample:
+            continue
         v = getattr(f.settings, field)
         assert getattr(f.params, field) == (float(v) if isinstance(v, bool) else v), field
     if cls is AquaFilter:
@@ -144,22 +151,25 @@ def test_fields_named_after_settings_carry_them(cls):
 
 
 def test_toggling_coefficients():
-    f = TogglingFilter(FS, states=("static", "slow", "fast"), alpha_acc=(0.02, 0.003, 0.0004),
-                       alpha_mag=(0.004, 0.001, 0.0002), static_state="slow", gamma=0.7, bias_gain=0.001,
-                       bias_gate=0.04, mag_disturbance_scale=5.0, noise_weight_acc=0.6, noise_weight_mag=0.4,
-                       use_mag=False)
-    p = f.params
+    ta, tm = (0.1732, 1.165, 8.748), (0.8731, 3.498, 17.5)
+    f = TogglingFilter(FS, states=("static", "slow", "fast"), tau_acc=ta, tau_mag=tm, static_state="slow",
+                       output_tau=0.002907, bias_tau=3.498, bias_gate=0.04, mag_disturbance_scale=5.0,
+                       noise_weight_acc=0.6, noise_weight_mag=0.4, use_mag=False)
+    p, ts = f.params, 1.0 / FS
     assert (p.use_mag, p.n_states, p.static_index) == (0.0, 3, 1)
-    assert np.array_equal(p.alpha_acc, [0.02, 0.003, 0.0004]) and np.array_equal(p.alpha_mag, [0.004, 0.001, 0.0002])
-    assert (p.gamma, p.bias_gain, p.bias_gate, p.mag_disturbance_scale, p.noise_weight_acc, p.noise_weight_mag) == \
-        (0.7, 0.001, 0.04, 5.0, 0.6, 0.4)
+    assert np.array_equal(p.alpha_acc, [gain(t, ts) for t in ta]) and np.array_equal(p.alpha_mag, [gain(t, ts) for t in tm])
+    assert (p.gamma, p.bias_gain) == (gain(0.002907, ts), gain(3.498, ts))
+    # the former per-sample values at 285.714 Hz
+    np.testing.assert_allclose([*p.alpha_acc, *p.alpha_mag, p.gamma, p.bias_gain],
+                               [0.02, 0.003, 0.0004, 0.004, 0.001, 0.0002, 0.7, 0.001], rtol=1e-3)
+    assert (p.bias_gate, p.mag_disturbance_scale, p.noise_weight_acc, p.noise_weight_mag) == (0.04, 5.0, 0.6, 0.4)
 
 
 def test_toggling_one_hot_prediction_selects_that_states_gains():
     """With a one-hot prediction of state s the gains used are alpha_acc[s], alpha_mag[s]; a
     non-finite probability row falls back to the smallest gains."""
-    f = TogglingFilter(FS, states=("a", "b", "c"), static_state="a", alpha_acc=(0.3, 0.02, 0.001),
-                       alpha_mag=(0.2, 0.01, 0.004))
+    f = TogglingFilter(FS, states=("a", "b", "c"), static_state="a", tau_acc=(0.0098, 0.1732, 3.498),
+                       tau_mag=(0.0157, 0.3482, 0.8731))
     n = 50
     g, acc, mag = np.zeros((n, 3)), np.tile([0.1, 0.0, 9.8], (n, 1)), np.tile([0.0, 20.0, -40.0], (n, 1))
     for s in range(3):
@@ -169,7 +179,7 @@ def test_toggling_one_hot_prediction_selects_that_states_gains():
         assert d["alpha_acc"][-1] == f.params.alpha_acc[s] and d["alpha_mag"][-1] == f.params.alpha_mag[s]
     pred = np.full((n, 9), np.nan)
     d = TogglingFilter(FS, f.settings).update_batch(g, acc, mag, predictions=pred).diagnostics
-    assert d["alpha_acc"][-1] == 0.001 and d["alpha_mag"][-1] == 0.004
+    assert d["alpha_acc"][-1] == min(f.params.alpha_acc) and d["alpha_mag"][-1] == min(f.params.alpha_mag)
 
 
 def test_streaming_feature_coefficients():

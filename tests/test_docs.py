@@ -103,7 +103,7 @@ def docs_workdir(tmp_path_factory, tiny_model_dir):
     s = len(compiled.class_names)
     for use_mag in (True, False):
         settings = TogglingSettings(states=tuple(compiled.class_names), static_state=compiled.static_state,
-                                    alpha_acc=(0.001,) * s, alpha_mag=(0.0005,) * s if use_mag else (0.0,) * s)
+                                    tau_acc=(3.498,) * s, tau_mag=(6.998,) * s if use_mag else (-1.0,) * s)
         save_gains(models, settings, ["fixed-in-test"], [], use_mag=use_mag, predictions="none (fixed in the test)")
     return work
 

@@ -13,6 +13,7 @@ from togglecf.core import quaternion as Q
 from togglecf import simulate as sim
 from togglecf.filters import FILTERS, make_filter
 from togglecf.filters.aqua import adaptive_gain, scale_delta_quat
+from togglecf.filters.timeconst import tau_from_gain
 
 ALL = sorted(FILTERS)
 SUITE = ["gyro", "accmag", "madgwick", "mahony", "aqua", "ekf"]
@@ -302,8 +303,8 @@ def test_heading_recovers_after_magnetic_disturbance(name):
     """Turntable (30 °/s about the vertical, 20° tilt), 9D; a 40 µT disturbance (almost the
     earth field's strength) from 10 s to 20 s pulls the heading away; 180 s after it ends the
     heading error is below 2°, i.e. close to the undisturbed run's level. The default gains are
-    BROAD's TAGPs, so the heading loops are slow: AQUA's gain_mag = 5e-5 per sample is a 70 s
-    time constant, Mahony's heading loop is ~6.5× slower than its tilt loop (MahonySettings)."""
+    BROAD's TAGPs, so the heading loops are slow: AQUA's tau_mag is 70 s (β̄ = 5e-5 per sample
+    at this rate), Mahony's heading loop is ~6.5× slower than its tilt loop (MahonySettings)."""
     traj = sim.turntable_trajectory(FS, 200.0, rate_deg_s=30.0, tilt_deg=20.0)
     n = len(traj)
     dist = sim.mag_disturbance_intervals(n, FS, ((10.0, 20.0, (40.0, 0.0, 0.0)),))
@@ -338,8 +339,10 @@ ROB_N = 6000  # 60 s: the slowest heading correction (EKF defaults) needs ~40 s 
 BAD_KINDS = ["gyr_nan", "gyr_inf", "gyr_sat", "acc_nan", "acc_inf", "acc_zero", "mag_nan", "mag_zero",
              "mag_inf", "dt_huge", "dt_nan", "dt_neg", "all_nan"]
 # gains fast enough to re-converge within ~50 s at 100 Hz (robustness, not accuracy, is tested)
-ROB_SETTINGS = {"cf": dict(alpha=0.01), "madgwick": dict(beta=0.1), "mahony": dict(Kp=2.0, Ki=0.01),
-                "aqua": dict(gain_acc=0.02, gain_mag=0.02),
+# (per sample at 100 Hz: CF α 0.01, AQUA ᾱ = β̄ = 0.02, as time constants)
+ROB_SETTINGS = {"cf": dict(tau=tau_from_gain(0.01, 1 / ROB_FS)), "madgwick": dict(beta=0.1),
+                "mahony": dict(Kp=2.0, Ki=0.01),
+                "aqua": dict(tau_acc=tau_from_gain(0.02, 1 / ROB_FS), tau_mag=tau_from_gain(0.02, 1 / ROB_FS)),
                 "ekf": {}, "accmag": {}, "gyro": {}}
 _ROB_TRAJ = sim.random_smooth_trajectory(ROB_FS, ROB_N / ROB_FS, max_rate=1.0, seed=7)
 _ROB_TRIAL = sim.imu_from_orientation(_ROB_TRAJ, ROB_FS, gyro_noise=0.002, acc_noise=0.02, mag_noise=0.2, seed=7)

@@ -32,21 +32,23 @@ def make_trial(seed):
 
 def test_learned_gains_follow_the_motion_state():
     trials, preds = zip(*(make_trial(s) for s in (1, 2)))
-    search = GainSearch(alpha=(0.0, 0.0003, 0.001, 0.003, 0.01, 0.03), gamma=(1.0,), bias_gain=(0.0, 0.003),
+    # time constants [s]: per sample 0 (off), 0.0003, 0.001, 0.003, 0.01, 0.03 at this test's 100 Hz
+    search = GainSearch(tau=(-1.0, 33.33, 9.995, 3.328, 0.995, 0.3283), output_tau=(0.0,), bias_tau=(-1.0, 3.328),
                         mag_disturbance_scale=(0.0,), sweeps=2)
     settings, history = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
-    a_rest, a_dyn = settings.alpha_acc
-    assert a_rest > a_dyn  # bursts of linear acceleration make the accelerometer untrustworthy in motion
-    assert settings.bias_gain > 0  # a 0.5 °/s bias is worth learning at rest
+    t_rest, t_dyn = settings.tau_acc
+    # bursts of linear acceleration make the accelerometer untrustworthy in motion: a longer τ (or off)
+    assert 0 < t_rest and (t_dyn < 0 or t_dyn > t_rest)
+    assert settings.bias_tau > 0  # a 0.5 °/s bias is worth learning at rest
     assert history[-1][2] < history[0][2]  # the objective only goes down
-    fixed = TogglingSettings(states=("rest", "dynamic"), static_state="rest", alpha_acc=(a_rest, a_rest),
-                             alpha_mag=settings.alpha_mag, bias_gain=settings.bias_gain)
+    fixed = TogglingSettings(states=("rest", "dynamic"), static_state="rest", tau_acc=(t_rest, t_rest),
+                             tau_mag=settings.tau_mag, bias_tau=settings.bias_tau)
     assert mean_total_rmse(settings, trials, preds) < mean_total_rmse(fixed, trials, preds)
 
 
 def test_parallel_objective_equals_serial():
     trials, preds = zip(*(make_trial(s) for s in (3, 4, 5)))
-    search = GainSearch(alpha=(0.0003, 0.003), gamma=(1.0,), bias_gain=(0.0,), mag_disturbance_scale=(0.0,), sweeps=1)
+    search = GainSearch(tau=(33.33, 3.328), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,), sweeps=1)
     serial = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
     parallel = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, jobs=2)
     assert serial == parallel  # same settings and the same objective values, bit for bit

@@ -25,8 +25,8 @@ def test_classic_specs_validate_without_a_rate():
             bad("no_such_filter")
     with pytest.raises(ValueError, match="unknown setting"):
         FilterSpec("madgwick", {"gamma": 1.0})
-    with pytest.raises(ValueError, match="alpha must be in"):
-        FilterSpec("cf", {"alpha": 2.0})  # the settings' own range check, no filter built
+    with pytest.raises(ValueError, match="tau must be finite"):
+        FilterSpec("cf", {"tau": float("nan")})  # the settings' own range check, no filter built
     with pytest.raises(ValueError, match="--models is for"):
         FilterSpec("cf", models="somewhere")
 
@@ -41,7 +41,7 @@ def test_toggling_spec_needs_a_trained_directory(tmp_path):
     with pytest.raises(ValueError, match="needs a model directory"):
         FilterSpec(TOGGLING)
     with pytest.raises(ValueError, match="no --param"):
-        FilterSpec(TOGGLING, {"alpha": 0.1}, models=tmp_path)
+        FilterSpec(TOGGLING, {"tau_acc": 0.1}, models=tmp_path)
     with pytest.raises(FileNotFoundError, match="no learned gains"):
         FilterSpec(TOGGLING, models=tmp_path)
     with pytest.raises(ValueError, match="sweep's parameter dict|model directory"):
@@ -52,7 +52,7 @@ def _train(mini_index, out, n_estimators):
     cfg = load_config()
     cfg["classifier"].update(n_estimators=n_estimators, max_depth=3)
     cfg["regressor"].update(n_estimators=3, max_depth=3)
-    cfg["gains"].update(alpha=[0.0002, 0.002], gamma=[1.0], bias_gain=[0.0], mag_disturbance_scale=[0.0], sweeps=1,
+    cfg["gains"].update(tau=[17.5, 1.748], output_tau=[0.0], bias_tau=[-1.0], mag_disturbance_scale=[0.0], sweeps=1,
                         modes=["9d"])
     run_training(cfg, data_dir=mini_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
 

@@ -22,11 +22,11 @@ folds = 2
 train_config = "train.toml"
 ablations = ["toggling_only", "noise_only", "6d", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias"]
 [baselines.cf]
-alpha = [0.0002, 0.0003, 0.01]
+tau = [17.5, 11.66, 0.3482]
 [baselines.madgwick]
 beta = [0.05, 0.1]
 [baselines_6d.cf]
-alpha = [0.0002, 0.0003]
+tau = [17.5, 11.66]
 """
 
 
@@ -62,7 +62,7 @@ def test_study_report_and_no_leakage(broad_index, tmp_path):
         cf_rows = pd.read_csv(out / "per_trial.csv")
         params = json.loads(cf_rows[(cf_rows["filter"] == "cf") & (cf_rows["fold"] == fold["fold"])]["params"].iloc[0])
         assert params == fold["baseline_tagp"]["cf"]["params"]
-        grid = [{"alpha": a} for a in (0.0002, 0.0003, 0.01)]  # recomputed independently on the training trials
+        grid = [{"tau": t} for t in (17.5, 11.66, 0.3482)]  # recomputed independently on the training trials
         res_train = evaluate_trials(broad_index, fold["train"], "cf", grid, jobs=1)
         means = [np.mean([r[n].errors["total"] for n in fold["train"]]) for r in res_train]
         assert params == grid[int(np.argmin(means))]

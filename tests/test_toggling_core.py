@@ -25,7 +25,7 @@ def err_deg(q, ref):
 def test_noiseless_motion_is_tracked_exactly():
     q_true = axis_sweep_trajectory([1, 2, 0.5], 120, FS, 10.0)
     tr = imu_from_orientation(q_true, FS)
-    out = TogglingFilter(FS, bias_gain=0.0).update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(len(q_true), 1))
+    out = TogglingFilter(FS, bias_tau=-1.0).update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(len(q_true), 1))
     # exact gyro + exact vectors: propagated vectors equal measured ones, corrections are null
     assert err_deg(out.quat, q_true).max() < 1e-6
 
@@ -36,11 +36,13 @@ def test_gain_follows_predicted_state():
     pred = one_hot(n, 0)
     pred[1000:] = one_hot(1000, 1)
     pred[500:600, :2] = 0.5  # probabilities in between give the expected gain
-    f = TogglingFilter(FS, alpha_acc=(0.02, 0.001), alpha_mag=(0.01, 0.0005))
+    f = TogglingFilter(FS, tau_acc=(0.1732, 3.498), tau_mag=(0.3482, 6.998))  # per sample ~(0.02, 0.001), (0.01, 0.0005)
+    ka, km = f.params.alpha_acc, f.params.alpha_mag
+    np.testing.assert_allclose([*ka, *km], [0.02, 0.001, 0.01, 0.0005], rtol=1e-3)
     d = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred).diagnostics
-    assert np.all(d["alpha_acc"][1:500] == 0.02) and np.all(d["alpha_acc"][1000:] == 0.001)
-    np.testing.assert_allclose(d["alpha_acc"][500:600], 0.5 * (0.02 + 0.001), rtol=1e-12)
-    np.testing.assert_allclose(d["alpha_mag"][500:600], 0.5 * (0.01 + 0.0005), rtol=1e-12)
+    assert np.all(d["alpha_acc"][1:500] == ka[0]) and np.all(d["alpha_acc"][1000:] == ka[1])
+    np.testing.assert_allclose(d["alpha_acc"][500:600], 0.5 * (ka[0] + ka[1]), rtol=1e-12)
+    np.testing.assert_allclose(d["alpha_mag"][500:600], 0.5 * (km[0] + km[1]), rtol=1e-12)
 
 
 def test_bias_learned_at_rest_and_used_in_motion():
@@ -52,14 +54,14 @@ def test_bias_learned_at_rest_and_used_in_motion():
     tr = imu_from_orientation(q_true, FS, gyro_bias=bias, gyro_noise=0.002, seed=1)
     pred = one_hot(len(q_true), 1)
     pred[:n_rest] = one_hot(n_rest, 0)
-    f = TogglingFilter(FS, alpha_acc=(0.01, 0.0), alpha_mag=(0.01, 0.0), bias_gain=0.002)
+    f = TogglingFilter(FS, tau_acc=(0.3482, -1.0), tau_mag=(0.3482, -1.0), bias_tau=1.748)
     out = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred)
     b = f.state_dict()
     # 20 s at a time constant of 1.75 s: the low-pass has converged to the bias within its noise
     np.testing.assert_allclose([b["bias_x"], b["bias_y"], b["bias_z"]], bias, atol=3e-4)
     # in motion with zero gains only gyro integration is left: the residual bias drifts < 0.1°/10 s
     assert err_deg(out.quat[-1], q_true[-1]) < 0.3
-    f0 = TogglingFilter(FS, alpha_acc=(0.01, 0.0), alpha_mag=(0.01, 0.0), bias_gain=0.0)
+    f0 = TogglingFilter(FS, tau_acc=(0.3482, -1.0), tau_mag=(0.3482, -1.0), bias_tau=-1.0)
     out0 = f0.update_batch(tr.gyr, tr.acc, tr.mag, predictions=pred)
     assert err_deg(out0.quat[-1], q_true[-1]) > 3.0  # without the bias: ~0.6°/s over 10 s
 
@@ -70,10 +72,10 @@ def test_predicted_noise_is_removed():
     lin = np.tile([2.0, 0.0, 0.0], (n, 1))  # constant 2 m/s² east: a tilt error of ~11.5° if kept
     tr = imu_from_orientation(q_true, FS, lin_acc_earth=lin)
     eta_a = quat.rotate(quat.conjugate(q_true[0]), [2.0, 0.0, 0.0])  # the regressor's perfect answer
-    f = TogglingFilter(FS, alpha_acc=(0.01, 0.01))
+    f = TogglingFilter(FS, tau_acc=(0.3482, 0.3482))
     f.set_quat(q_true[0])
     with_noise = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(n, 0)).quat
-    f = TogglingFilter(FS, alpha_acc=(0.01, 0.01))
+    f = TogglingFilter(FS, tau_acc=(0.3482, 0.3482))
     denoised = f.update_batch(tr.gyr, tr.acc, tr.mag, predictions=one_hot(n, 0, eta_a=eta_a)).quat
     assert err_deg(with_noise[-1], q_true[-1]) > 10.0
     assert err_deg(denoised[-1], q_true[-1]) < 1e-6
@@ -86,8 +88,8 @@ def test_update_equals_batch_and_state_splits_exactly(broad_trial):
     rng = np.random.default_rng(0)
     p = rng.random((n, 3))
     pred = np.hstack([p / p.sum(1, keepdims=True), 0.05 * rng.standard_normal((n, 6))])
-    kw = dict(states=("rest", "rot", "trans"), alpha_acc=(0.01, 0.002, 0.0005), alpha_mag=(0.003, 0.001, 0.0),
-              static_state="rest", gamma=0.5)
+    kw = dict(states=("rest", "rot", "trans"), tau_acc=(0.3482, 1.748, 6.998), tau_mag=(1.165, 3.498, -1.0),
+              static_state="rest", output_tau=0.005049)
     for use_mag in (True, False):
         mm = m if use_mag else None
         full = TogglingFilter(broad_trial.fs, use_mag=use_mag, **kw).update_batch(g, a, mm, predictions=pred)
@@ -113,15 +115,19 @@ def test_bad_inputs_and_predictions_do_not_poison():
     m[120:130] = np.inf
     pred[130:140] = np.nan  # the model had no answer
     pred[140:150, 2:] = np.inf
-    out = TogglingFilter(FS).update_batch(g, a, m, predictions=pred)
+    f = TogglingFilter(FS)
+    out = f.update_batch(g, a, m, predictions=pred)
     assert np.all(np.isfinite(out.quat))
     np.testing.assert_allclose(np.linalg.norm(out.quat, axis=1), 1.0, atol=1e-12)
-    assert np.all(out.diagnostics["alpha_acc"][130:140] == 0.0005)  # lowest gain when unsure
+    assert np.all(out.diagnostics["alpha_acc"][130:140] == min(f.params.alpha_acc))  # lowest gain when unsure
+    assert min(f.params.alpha_acc) == pytest.approx(0.0005, rel=1e-3)
 
 
 def test_settings_validation():
-    with pytest.raises(ValueError, match="one gain per state"):
-        TogglingFilter(FS, alpha_acc=(0.1,))
+    with pytest.raises(ValueError, match="one time constant per state"):
+        TogglingFilter(FS, tau_acc=(0.1,))
+    with pytest.raises(ValueError, match="output_tau must be >= 0"):
+        TogglingFilter(FS, output_tau=-1.0)
     with pytest.raises(ValueError, match="static_state"):
         TogglingFilter(FS, static_state="rest")
     with pytest.raises(ValueError, match=r"predictions: expected shape \(10, 8\)"):
@@ -136,7 +142,7 @@ def test_noise_weights_scale_the_removed_noise():
     pred = one_hot(n, 0, eta_a=eta_a)
     out = {}
     for w in (0.0, 0.5, 1.0):
-        f = TogglingFilter(FS, alpha_acc=(0.05, 0.05), noise_weight_acc=w, use_mag=False)  # 6D: tilt only
+        f = TogglingFilter(FS, tau_acc=(0.06824, 0.06824), noise_weight_acc=w, use_mag=False)  # 6D: tilt only
         f.set_quat(q_true[0])
         out[w] = err_deg(f.update_batch(tr.gyr, tr.acc, None, predictions=pred).quat[-1], q_true[-1])
     # 2 m/s² left over tilts by atan(2/9.81) = 11.5°, half of it by atan(1/9.81) = 5.8°, none by 0

@@ -10,7 +10,8 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.toggling.inloop import ModelTogglingFilter
 from togglecf.learn.models import load_bundle
 
-GAINS = dict(alpha_acc=(0.02, 0.002, 0.0005, 0.0002), alpha_mag=(0.005, 0.001, 0.0003, 0.0001), gamma=0.7)
+#: time constants [s]: per sample (0.02, 0.002, 0.0005, 0.0002), (0.005, 0.001, 0.0003, 0.0001), γ 0.7 at 285.714 Hz
+GAINS = dict(tau_acc=(0.1732, 1.748, 6.998, 17.5), tau_mag=(0.6982, 3.498, 11.66, 35.0), output_tau=0.002907)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +71,7 @@ def test_update_equals_batch_and_full_state_splits(bundle, segment):
 def test_states_must_match_model_classes(bundle):
     models = CompiledModels.from_bundle(bundle)
     with pytest.raises(ValueError, match="differ from the model's classes"):
-        ModelTogglingFilter(285.7, models=models, states=("a", "b"), alpha_acc=(0.1, 0.1), alpha_mag=(0.1, 0.1),
+        ModelTogglingFilter(285.7, models=models, states=("a", "b"), tau_acc=(0.1, 0.1), tau_mag=(0.1, 0.1),
                             static_state="a")
 
 

@@ -1,11 +1,35 @@
 """Command-line options shared by several commands: the execution backend (``--backend``,
-``--scheduler``, ``--retries``) with the one precedence rule (flags > config ``[run]`` > defaults)."""
+``--scheduler``, ``--retries``) and the data directories (``--data``, repeatable), with the one
+precedence rule (flags > config ``[run]`` > defaults)."""
 from __future__ import annotations
 
 from togglecf.core.config import BACKENDS, RUN_DEFAULTS, load_run_section
+from togglecf.data.broad import SELECTION_HELP
 from togglecf.parallel.backend import Backend, BackendError, make_backend
 
-__all__ = ["add_backend_args", "backend_settings", "backend_from_args"]
+__all__ = ["add_backend_args", "backend_settings", "backend_from_args", "add_data_args", "data_dirs"]
+
+DATA_HELP = ("data directory in BROAD's layout (trials.json + .hdf5/.mat); repeat for several "
+             "(--data A --data B: trial names become <dir name>/<trial>, groups <dir name>/<group> plus one "
+             "per directory); default: [run] data of the config, else $TOGGLECF_DATA, else ../shared/data/broad "
+             "next to the repo, else ./data/broad")
+
+
+def add_data_args(sp, trials_help: str = "default: all present"):
+    """``--data DIR`` (repeatable) and ``--trials LIST``."""
+    sp.add_argument("--data", metavar="DIR", action="append", default=None, help=DATA_HELP)
+    sp.add_argument("--trials", metavar="LIST", help=f"{SELECTION_HELP} ({trials_help})")
+
+
+def data_dirs(args, run_cfg: dict | None = None):
+    """The data directories: ``--data`` (all of them) over the config's ``[run] data`` over the default
+    location (``None``). For ``tune``/``evaluate`` the config is ``--config``'s."""
+    if getattr(args, "data", None):
+        return list(args.data)
+    if run_cfg is None and getattr(args, "config", None) and getattr(args, "command", "") in ("tune", "evaluate"):
+        run_cfg = load_run_section(args.config)
+    data = (run_cfg or {}).get("data") or None
+    return [data] if isinstance(data, str) else data
 
 
 #: the ``[run]`` keys that choose the backend

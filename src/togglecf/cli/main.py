@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from togglecf import __version__
-from togglecf.cli.common import add_backend_args, backend_from_args, backend_settings
+from togglecf.cli.common import add_backend_args, add_data_args, backend_from_args, backend_settings, data_dirs
 from togglecf.cli.export import add_export_parser
 from togglecf.cli.plot import add_plot_parser
 from togglecf.cli.prune import add_prune_parser
@@ -19,7 +19,7 @@ from togglecf.cli.stream import add_stream_parser
 from togglecf.cli.train import add_train_parser
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
-from togglecf.data.broad import MAX_INVALID_FRACTION, DataError, DataNotFoundError, DatasetIndex, resolve_data_dir
+from togglecf.data.broad import MAX_INVALID_FRACTION, DataError, DataNotFoundError, open_index
 from togglecf.data.download import download_broad
 from togglecf.filters import FILTERS
 from togglecf.metrics.broad import METRICS, group_means
@@ -56,10 +56,7 @@ def _parser():
         sp.add_argument("--no-resume", dest="resume", action="store_false",
                         help="with --out: recompute everything instead of reusing DIR/sweep.jsonl")
 
-    def data_args(sp):
-        sp.add_argument("--data", metavar="DIR", help="BROAD directory (trials.json + .hdf5/.mat); default: "
-                        "$TOGGLECF_DATA, else ../shared/data/broad next to the repo, else ./data/broad")
-        sp.add_argument("--trials", metavar="LIST", help="comma-separated trial numbers or names (default: all present)")
+    data_args = add_data_args
 
     sp = sub.add_parser("trials", help="list the BROAD trials found and those missing")
     data_args(sp)
@@ -104,8 +101,9 @@ def _parser():
     return p
 
 
-def _index(args) -> DatasetIndex:
-    index = DatasetIndex.from_dir(resolve_data_dir(args.data))
+def _index(args):
+    """The index of ``--data`` (one directory or several) or the config's ``[run] data``."""
+    index = open_index(data_dirs(args))
     print(index.summary(), file=sys.stderr)
     return index
 
@@ -136,17 +134,23 @@ def _tables(results: dict, groups: dict, invalid: dict | None = None):
     return per_trial, per_group
 
 
-def _print_tables(title, per_trial, per_group):
+def _print_tables(title, per_trial, per_group, datasets=()):
     fmt = {c: "{:.3f}".format for c in per_trial.columns if c not in ("n_samples", "n_invalid")}
     if "n_invalid" in per_trial:
         fmt["n_invalid"] = lambda v: "?" if pd.isna(v) else str(int(v))
     print(f"\n{title}\nper trial (RMSE in degrees over the movement samples):")
     print(per_trial.to_string(formatters=fmt))
-    print("\nper BROAD group (mean of the trials present; n_trials of n_listed):")
+    what = "group (<dataset>: all its trials; <dataset>/<group>: its trials.json groups)" if datasets else "BROAD group"
+    print(f"\nper {what} (mean of the trials present; n_trials of n_listed):")
     print(per_group.to_string(formatters={c: "{:.3f}".format for c in METRICS}))
     print(f"\nmean over {len(per_trial)} trials: total {per_trial['total'].mean():.3f}°, heading "
           f"{per_trial['heading'].mean():.3f}°, inclination {per_trial['inclination'].mean():.3f}°, "
           f"{per_trial['us_per_sample'].median():.3f} µs/sample (median)")
+    for ds in datasets:  # several data directories: one line per dataset (its group in the table above)
+        if ds in per_group.index:
+            r = per_group.loc[ds]
+            print(f"  {ds}: mean over {int(r['n_trials'])} trials: total {r['total']:.3f}°, heading "
+                  f"{r['heading']:.3f}°, inclination {r['inclination']:.3f}°")
 
 
 def _write(out, per_trial, per_group, meta):
@@ -160,8 +164,14 @@ def _write(out, per_trial, per_group, meta):
 
 def _meta(args, index, names, **extra):
     return {"togglecf_version": __version__, "filter": args.filter, "mode": "6D" if args.six_d else "9D",
-            "data_dir": str(index.root), "trials": names, "missing_trials": index.missing,
+            "data_dir": _data_dir_meta(index), "trials": names, "missing_trials": index.missing,
             "created_unix": time.time(), **extra}
+
+
+def _data_dir_meta(index):
+    """``data_dir`` of results.json: the directory, or the list of them for several."""
+    root = index.root
+    return [str(r) for r in root] if isinstance(root, (tuple, list)) else str(root)
 
 
 def cmd_evaluate(args):
@@ -180,7 +190,8 @@ def cmd_evaluate(args):
         raise ValueError(f"no trial could be evaluated: all {len(names)} selected trial(s) failed (listed above)")
     _report_invalid(sweep.invalid, index)
     per_trial, per_group = _tables(res, index.groups, sweep.invalid)
-    _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group)
+    _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group,
+                  getattr(index, "datasets", ()))
     if args.out:
         _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings),
                                                      failed_trials=sweep.failed, invalid_samples=sweep.invalid,

@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import open_index
 from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
@@ -16,7 +16,7 @@ __all__ = ["add_plot_parser"]
 
 def _load_trial(args):
     matplotlib.use("Agg")  # the commands only write files
-    index = DatasetIndex.from_dir(resolve_data_dir(args.data))
+    index = open_index(args.data)
     names = index.select(args.trial)
     if len(names) != 1:
         raise ValueError(f"--trial {args.trial!r} matches {len(names)} trials; give one")

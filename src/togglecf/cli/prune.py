@@ -72,7 +72,9 @@ def add_prune_parser(subparsers):
     sp.add_argument("--format", choices=tuple(SIZE_KEYS), default="array",
                     help="code format whose RISC-V object size is the size axis (default: array)")
     add_sweep_arguments(sp)
-    sp.add_argument("--data", metavar="DIR", help="BROAD directory")
+    sp.add_argument("--data", metavar="DIR", action="append", default=None,
+                    help="data directory, repeatable (default: the directories the models were trained on when "
+                    "they were several, else the default location)")
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
     sp.set_defaults(func=cmd_prune)
     return sp

@@ -1,7 +1,8 @@
 """``togglecf train``: learn the models and the toggling gains (``togglecf.run.train``)."""
 from __future__ import annotations
 
-from togglecf.cli.common import add_backend_args, backend_settings
+from togglecf.cli.common import DATA_HELP, add_backend_args, backend_settings
+from togglecf.data.broad import SELECTION_HELP
 from togglecf.run.config import DEFAULT_CONFIG, load_config
 from togglecf.run.train import run_training
 
@@ -14,9 +15,8 @@ def add_train_parser(subparsers):
                                "(CV by trial, then a final fit) and save them under models/NAME")
     sp.add_argument("--config", default=str(DEFAULT_CONFIG), metavar="TOML",
                     help="pipeline settings (default: pipelines/configs/default.toml)")
-    sp.add_argument("--data", metavar="DIR", help="BROAD directory (default: $TOGGLECF_DATA, else "
-                    "../shared/data/broad next to the repo, else ./data/broad)")
-    sp.add_argument("--trials", metavar="LIST", help="comma-separated trial numbers or names (default: config)")
+    sp.add_argument("--data", metavar="DIR", action="append", default=None, help=DATA_HELP)
+    sp.add_argument("--trials", metavar="LIST", help=f"{SELECTION_HELP} (default: [run] trials of the config)")
     sp.add_argument("--out", metavar="DIR", help="model directory (default: models/<run.name>)")
     sp.add_argument("--no-cv", dest="cv", action="store_false", help="skip cross-validation (final fit only)")
     add_backend_args(sp)

@@ -15,10 +15,12 @@ __all__ = ["config_path", "read_toml", "merge_settings", "RUN_DEFAULTS", "BACKEN
 #: execution backends (``togglecf.parallel``): this machine's processes, or a Dask cluster
 BACKENDS = ("local", "dask")
 
-#: ``[run]`` of a training config: run name, seed, threads, CV folds, trial selection, top-k features, and
-#: where CV folds / per-trial features / sweeps run (``togglecf.parallel``)
+#: ``[run]`` of a training config: run name, seed, threads, CV folds, trial selection, top-k features,
+#: where CV folds / per-trial features / sweeps run (``togglecf.parallel``), and the data directories
+#: (``data``: "" for the default location, a directory, or a list of them; ``--data`` overrides it)
 RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all", "max_features": 0,
-                "backend": "local", "scheduler": "", "retries": 2, "chunk_size": -1, "distributed_fit": False}
+                "backend": "local", "scheduler": "", "retries": 2, "chunk_size": -1, "distributed_fit": False,
+                "data": ""}
 
 
 def config_path(name: str) -> Path:
@@ -62,4 +64,7 @@ def load_run_section(source=None, flags: dict | None = None) -> dict:
     run = merge_settings(RUN_DEFAULTS, raw.get("run", {}), flags, what="config [run]")
     if run["backend"] not in BACKENDS:
         raise ValueError(f"config [run]: backend must be one of {list(BACKENDS)}, got {run['backend']!r}")
+    data = run["data"]
+    if not (isinstance(data, str) or (isinstance(data, list) and all(isinstance(d, str) and d for d in data))):
+        raise ValueError(f"config [run]: data must be a directory or a list of directories, got {data!r}")
     return run

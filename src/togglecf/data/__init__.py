@@ -5,11 +5,14 @@ from togglecf.data.broad import (
                                  DataError,
                                  DataNotFoundError,
                                  DatasetIndex,
+                                 MultiIndex,
                                  Trial,
                                  load_trial,
+                                 open_index,
                                  resolve_data_dir,
+                                 resolve_data_dirs,
 )
 from togglecf.data.download import download_broad
 
-__all__ = ["BROAD_URL", "GRAVITY", "DataError", "DataNotFoundError", "DatasetIndex", "Trial", "load_trial",
-           "resolve_data_dir", "download_broad"]
+__all__ = ["BROAD_URL", "GRAVITY", "DataError", "DataNotFoundError", "DatasetIndex", "MultiIndex", "Trial",
+           "load_trial", "open_index", "resolve_data_dir", "resolve_data_dirs", "download_broad"]

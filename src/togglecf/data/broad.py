@@ -4,9 +4,21 @@ BROAD (Laidig et al., Data 6(7):72, 2021) ships each trial as HDF5 and as MATLAB
 the fields ``imu_gyr`` [rad/s], ``imu_acc`` [m/s²], ``imu_mag`` [µT], ``opt_quat``
 (sensor -> ENU, NaN rows where markers were lost), ``opt_pos`` [m], ``movement`` (bool)
 and ``sampling_rate`` [Hz]; ``trials.json`` lists the 39 trials and 16 groups.
+
+Any directory in this layout works (``trials.json`` + one file per trial). Evaluation needs only
+``imu_gyr``, ``imu_acc``, ``imu_mag``, ``opt_quat``, ``movement`` and ``sampling_rate``;
+``opt_pos`` is optional (``Trial.opt_pos`` is ``None`` without it) and only training's labels
+need it (``togglecf.learn.labels.LABEL_FIELDS``).
+
+Several directories at once: ``open_index([A, B])`` (or ``DatasetIndex.from_dirs``) gives a
+``MultiIndex`` with the same interface, whose trial names carry their dataset
+(``<dir name>/<trial>``, e.g. ``tyrex_nexus5/Guillaume_Nexus5_NoDist_AR``) and whose groups are
+each directory's ``trials.json`` groups prefixed the same way, plus one group per dataset
+(``tyrex_nexus5``: all its listed trials). With one directory nothing is prefixed.
 """
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -18,7 +30,8 @@ import numpy as np
 __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
-    "check_evaluable",
+    "check_evaluable", "MultiIndex", "open_index", "resolve_data_dirs", "trial_fields", "REQUIRED_FIELDS",
+    "OPTIONAL_FIELDS",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -71,7 +84,8 @@ class Trial:
         fs: sampling rate [Hz].
         gyr, acc, mag: ``(N, 3)`` float64 in rad/s, m/s², µT (sensor frame).
         opt_quat: ``(N, 4)`` sensor -> ENU ground truth; NaN rows where unavailable.
-        opt_pos: ``(N, 3)`` [m] marker position, NaN rows where unavailable.
+        opt_pos: ``(N, 3)`` [m] marker position, NaN rows where unavailable; ``None`` when the
+            recording has none (evaluation does not need it; training's labels do).
         movement: ``(N,)`` bool, the samples errors are scored on.
         groups: BROAD group names of this trial.
         source: file it was read from, if any.
@@ -83,7 +97,7 @@ class Trial:
     acc: np.ndarray
     mag: np.ndarray
     opt_quat: np.ndarray
-    opt_pos: np.ndarray
+    opt_pos: np.ndarray | None
     movement: np.ndarray
     groups: tuple[str, ...] = ()
     source: Path | None = None
@@ -98,6 +112,8 @@ class Trial:
         object.__setattr__(self, "fs", float(self.fs))
         n = None
         for name, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("opt_quat", 4), ("opt_pos", 3)):
+            if name == "opt_pos" and self.opt_pos is None:
+                continue
             arr = np.ascontiguousarray(getattr(self, name), dtype=np.float64)
             if arr.ndim != 2 or arr.shape[1] != width:
                 raise DataError(src, name, f"expected shape (N, {width}), got {arr.shape}")
@@ -129,6 +145,8 @@ class Trial:
         object.__setattr__(self, "invalid", invalid)
         for name in ("opt_quat", "opt_pos"):
             arr = getattr(self, name)
+            if arr is None:
+                continue
             fin = np.isfinite(arr)
             if np.any(fin.any(axis=1) & ~fin.all(axis=1)):
                 raise DataError(src, name, "rows must be all finite or all NaN")
@@ -173,14 +191,16 @@ class Trial:
         """A sub-trial of samples ``start:stop`` (same name with a suffix)."""
         sl = np.s_[start:stop]
         return Trial(f"{self.name}[{start}:{stop}]", self.fs, self.gyr[sl], self.acc[sl], self.mag[sl],
-                     self.opt_quat[sl], self.opt_pos[sl], self.movement[sl], self.groups, self.source,
-                     check_units=False)
+                     self.opt_quat[sl], None if self.opt_pos is None else self.opt_pos[sl], self.movement[sl],
+                     self.groups, self.source, check_units=False)
 
 
 # ------------------------------------------------------------------------------------------ loading
 
-def load_trial(path, groups=(), check_units: bool = True) -> Trial:
-    """Read one BROAD trial from ``.hdf5`` or ``.mat``.
+def load_trial(path, groups=(), check_units: bool = True, name: str | None = None) -> Trial:
+    """Read one BROAD trial from ``.hdf5`` or ``.mat`` (``name``: default the file's stem).
+
+    ``REQUIRED_FIELDS`` must be there; ``opt_pos`` may be absent (``Trial.opt_pos`` is ``None``).
 
     Raises ``DataError`` naming the file and field for a missing dataset, wrong shape, a recording
     shorter than ``MIN_DURATION_S``, more than ``MAX_INVALID_FRACTION`` non-finite samples in an IMU
@@ -202,8 +222,8 @@ def load_trial(path, groups=(), check_units: bool = True) -> Trial:
         raise DataError(path, "imu_gyr", f"{n} samples ({n / fs:.2f} s at {fs:.1f} Hz) is too short: at least "
                         f"{min_samples(fs)} samples ({MIN_DURATION_S:g} s, togglecf.data.broad.MIN_DURATION_S) are "
                         "needed to evaluate a filter")
-    return Trial(name=path.stem, fs=fs, gyr=fields["imu_gyr"], acc=fields["imu_acc"], mag=fields["imu_mag"],
-                 opt_quat=fields["opt_quat"], opt_pos=fields["opt_pos"], movement=fields["movement"],
+    return Trial(name=name or path.stem, fs=fs, gyr=fields["imu_gyr"], acc=fields["imu_acc"], mag=fields["imu_mag"],
+                 opt_quat=fields["opt_quat"], opt_pos=fields.get("opt_pos"), movement=fields["movement"],
                  groups=tuple(groups), source=path, check_units=check_units)
 
 
@@ -223,7 +243,27 @@ def check_evaluable(trial: Trial) -> Trial:
     return trial
 
 
-_REQUIRED = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "opt_pos", "movement")
+#: what every trial file must hold (besides ``sampling_rate``): all that evaluation needs
+REQUIRED_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement")
+#: read when present: ``opt_pos`` (only training's labels need it, ``togglecf.learn.labels.LABEL_FIELDS``)
+OPTIONAL_FIELDS = ("opt_pos",)
+_REQUIRED = REQUIRED_FIELDS
+
+
+def trial_fields(path) -> set[str]:
+    """The dataset/variable names a trial file holds, without reading the arrays."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".mat":
+            import scipy.io
+
+            return {n for n, *_ in scipy.io.whosmat(path)}
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            return set(f.keys())
+    except Exception as exc:  # corrupt files: the loader says what is wrong
+        raise DataError(path, None, f"cannot read trial file (corrupt or truncated?): {exc}") from None
 
 
 def _read_hdf5(path: Path):
@@ -240,7 +280,7 @@ def _read_hdf5(path: Path):
                 fs = f["sampling_rate"][()]
             else:
                 raise DataError(path, "sampling_rate", "missing file attribute")
-            fields = {k: f[k][()] for k in _REQUIRED}
+            fields = {k: f[k][()] for k in _REQUIRED + OPTIONAL_FIELDS if k in f}
     except DataError:
         raise
     except OSError as exc:  # h5py raises OSError for corrupt or truncated files
@@ -259,7 +299,7 @@ def _read_mat(path: Path):
     if missing:
         have = sorted(k for k in mat if not k.startswith("__"))
         raise DataError(path, missing[0], f"missing variable (file has: {have})")
-    return {k: mat[k] for k in _REQUIRED}, _scalar(path, mat["sampling_rate"])
+    return {k: mat[k] for k in _REQUIRED + OPTIONAL_FIELDS if k in mat}, _scalar(path, mat["sampling_rate"])
 
 
 def _scalar(path, value) -> float:
@@ -318,25 +358,18 @@ class DatasetIndex:
         unlisted = [p for stem, ps in files.items() if stem not in trials for p in ps]
         return cls(root, trials, groups, available, missing, unlisted)
 
+    @classmethod
+    def from_dirs(cls, roots) -> "DatasetIndex | MultiIndex":
+        """One directory: its ``DatasetIndex``; several: their ``MultiIndex`` (see ``open_index``)."""
+        return open_index(list(roots))
+
+    @property
+    def roots(self) -> tuple[Path, ...]:
+        return (Path(self.root),)
+
     def select(self, spec: str | list[str] | None = None) -> list[str]:
-        """Available trial names matching ``spec``: ``None`` for all, or comma-separated
-        numbers (``"02,07"``), full names or name prefixes. Unknown or unavailable ones raise."""
-        if spec is None or spec == "" or spec == "all":
-            return list(self.available)
-        items = spec.split(",") if isinstance(spec, str) else list(spec)
-        out = []
-        for item in (s.strip() for s in items):
-            if not item:
-                continue
-            pattern = re.compile(rf"^{re.escape(item.zfill(2) if item.isdigit() else item)}(_|$)")
-            hits = [t for t in self.trials if pattern.match(t) or t == item]
-            if not hits:
-                raise KeyError(f"trial {item!r} is not listed in {self.root / 'trials.json'}")
-            absent = [t for t in hits if t not in self.available]
-            if absent and len(absent) == len(hits):
-                raise KeyError(f"trial {absent[0]} is listed but not present in {self.root}")
-            out.extend(t for t in hits if t in self.available and t not in out)
-        return out
+        """Available trial names matching ``spec`` (see ``select_trials``)."""
+        return _select_one(self, spec, prefix=Path(self.root).name)
 
     def trial_groups(self, name: str) -> tuple[str, ...]:
         return tuple(self.trials[name].get("groups", ()))
@@ -346,6 +379,10 @@ class DatasetIndex:
             raise KeyError(f"trial {name} is not present in {self.root}")
         return load_trial(self.available[name], groups=self.trial_groups(name), check_units=check_units)
 
+    def dataset_of(self, name: str) -> str:
+        """The dataset a trial belongs to: the directory's name."""
+        return Path(self.root).name
+
     def summary(self) -> str:
         lines = [f"BROAD at {self.root}: {len(self.available)} of {len(self.trials)} listed trials present"]
         if self.missing:
@@ -353,6 +390,163 @@ class DatasetIndex:
         if self.unlisted:
             lines.append("not in trials.json, ignored: " + ", ".join(p.name for p in self.unlisted))
         return "\n".join(lines)
+
+
+_GLOB_CHARS = set("*?[")
+
+#: how ``--trials`` / ``[run] trials`` select (the same for one directory and for several)
+SELECTION_HELP = (
+    "comma-separated items; each a trial number (02), a full name or a name prefix, a glob (*NoDist*, "
+    "tyrex_nexus5/*_AR), or with several --data directories DATASET/ITEM (broad/02) or DATASET/ for all of "
+    "a dataset's trials (DATASET is the directory's name); 'all' or nothing selects every trial present"
+)
+
+
+def _match(trials, item: str) -> list[str]:
+    """Listed trial names that ``item`` selects: a glob, or a number / full name / name prefix."""
+    if _GLOB_CHARS & set(item):
+        return [t for t in trials if fnmatch.fnmatchcase(t, item)]
+    pattern = re.compile(rf"^{re.escape(item.zfill(2) if item.isdigit() else item)}(_|$)")
+    return [t for t in trials if pattern.match(t) or t == item]
+
+
+def _items(spec) -> list[str] | None:
+    if spec is None or spec == "" or spec == "all":
+        return None
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    items = [s.strip() for s in items if s and s.strip()]
+    return items or None
+
+
+def _keep_available(index, item, hits, out, where):
+    if not hits:
+        raise KeyError(f"trial {item!r} is not listed in {where}")
+    absent = [t for t in hits if t not in index.available]
+    if absent and len(absent) == len(hits):
+        raise KeyError(f"trial {absent[0]} is listed but not present in {index.root}")
+    out.extend(t for t in hits if t in index.available and t not in out)
+
+
+def _select_one(index: "DatasetIndex", spec, prefix: str | None = None) -> list[str]:
+    """``DatasetIndex.select``: also accepts ``<directory name>/ITEM`` and ``<directory name>/``, so a
+    selection written for several directories works on one of them."""
+    items = _items(spec)
+    if items is None:
+        return list(index.available)
+    out = []
+    for item in items:
+        if prefix and item.startswith(prefix + "/"):
+            item = item[len(prefix) + 1:] or "*"
+        _keep_available(index, item, _match(index.trials, item), out, Path(index.root) / "trials.json")
+    return out
+
+
+@dataclass
+class MultiIndex:
+    """Several BROAD-layout directories as one index (the interface of ``DatasetIndex``).
+
+    Trial names are ``<dataset>/<trial>`` with ``<dataset>`` the directory's name; groups are
+    ``<dataset>`` (all of its listed trials) and ``<dataset>/<group>`` for each group of its
+    ``trials.json``. ``root`` is the tuple of directories (what ``open_index`` takes back, e.g.
+    on a worker).
+    """
+
+    datasets: dict  # dataset name -> DatasetIndex, in the order given
+    trials: dict = field(init=False)
+    groups: dict = field(init=False)
+    available: dict = field(init=False)
+    missing: list = field(init=False)
+    unlisted: list = field(init=False)
+
+    def __post_init__(self):
+        self.trials, self.groups, self.available, self.missing, self.unlisted = {}, {}, {}, [], []
+        for ds, idx in self.datasets.items():
+            self.groups[ds] = [f"{ds}/{t}" for t in idx.trials]
+            for t, info in idx.trials.items():
+                self.trials[f"{ds}/{t}"] = {**info, "groups": [ds] + [f"{ds}/{g}" for g in info.get("groups", ())]}
+            for g, members in idx.groups.items():
+                self.groups[f"{ds}/{g}"] = [f"{ds}/{t}" for t in members]
+            self.available.update({f"{ds}/{t}": p for t, p in idx.available.items()})
+            self.missing.extend(f"{ds}/{t}" for t in idx.missing)
+            self.unlisted.extend(idx.unlisted)
+
+    @classmethod
+    def from_dirs(cls, roots) -> "MultiIndex":
+        datasets = {}
+        for root in roots:
+            root = Path(root)
+            idx = DatasetIndex.from_dir(root)
+            ds = root.resolve().name
+            if ds in datasets:
+                raise ValueError(f"two data directories are both called {ds!r} ({datasets[ds].root} and {root}): trial "
+                                 "names carry the directory's name, so give one of them another name (or a symlink)")
+            datasets[ds] = idx
+        if not datasets:
+            raise DataNotFoundError(f"no data directory given; {_WHERE_TO_GET}")
+        return cls(datasets)
+
+    @property
+    def root(self) -> tuple[Path, ...]:
+        return tuple(Path(idx.root) for idx in self.datasets.values())
+
+    roots = root
+
+    def split(self, name: str) -> tuple[str, str]:
+        """``"broad/02_..."`` -> ``("broad", "02_...")``; ``KeyError`` for an unknown dataset."""
+        ds, sep, local = name.partition("/")
+        if not sep or ds not in self.datasets:
+            raise KeyError(f"trial {name!r}: names are <dataset>/<trial> with <dataset> one of {list(self.datasets)}")
+        return ds, local
+
+    def dataset_of(self, name: str) -> str:
+        return self.split(name)[0]
+
+    def select(self, spec: str | list[str] | None = None) -> list[str]:
+        """Available trial names matching ``spec`` (``SELECTION_HELP``): ``DATASET/`` all of a dataset,
+        ``DATASET/ITEM`` an item within it, a glob over the full names, or an item without a dataset,
+        matched in every dataset. Unknown or unavailable ones raise ``KeyError``."""
+        items = _items(spec)
+        if items is None:
+            return list(self.available)
+        out = []
+        for item in items:
+            ds, sep, rest = item.partition("/")
+            if sep and ds in self.datasets and not (_GLOB_CHARS & set(ds)):
+                idx = self.datasets[ds]
+                hits = [f"{ds}/{t}" for t in _match(idx.trials, rest or "*")]
+                where = Path(idx.root) / "trials.json"
+            elif _GLOB_CHARS & set(item):
+                hits, where = _match(self.trials, item), "any of " + ", ".join(str(r) for r in self.root)
+            else:
+                hits = [f"{d}/{t}" for d, idx in self.datasets.items() for t in _match(idx.trials, item)]
+                where = "the trials.json of " + ", ".join(str(r) for r in self.root)
+            _keep_available(self, item, hits, out, where)
+        return out
+
+    def trial_groups(self, name: str) -> tuple[str, ...]:
+        return tuple(self.trials[name].get("groups", ()))
+
+    def load(self, name: str, check_units: bool = True) -> Trial:
+        if name not in self.available:
+            raise KeyError(f"trial {name} is not present in {', '.join(str(r) for r in self.root)}")
+        return load_trial(self.available[name], groups=self.trial_groups(name), check_units=check_units, name=name)
+
+    def summary(self) -> str:
+        lines = [f"{len(self.datasets)} datasets: {len(self.available)} of {len(self.trials)} listed trials present"]
+        for ds, idx in self.datasets.items():
+            lines.append(f"  {ds}/: " + idx.summary().replace("BROAD at ", "").replace("\n", "\n    "))
+        return "\n".join(lines)
+
+
+def open_index(data=None) -> "DatasetIndex | MultiIndex":
+    """The index of one data directory or of several: ``data`` is ``None`` (the default location,
+    ``resolve_data_dir``), a directory, or a list/tuple of directories (each must hold a
+    ``trials.json``). One directory (also a list of one) gives a ``DatasetIndex`` with the trial names
+    as they are; several give a ``MultiIndex`` (names ``<dataset>/<trial>``)."""
+    dirs = resolve_data_dirs(data)
+    if len(dirs) == 1:
+        return DatasetIndex.from_dir(dirs[0])
+    return MultiIndex.from_dirs(dirs)
 
 
 # ---------------------------------------------------------------------------- data-dir resolution
@@ -388,6 +582,21 @@ def candidate_data_dirs(cli_dir=None) -> list[tuple[str, Path]]:
     cands.append(("next to the working directory", Path.cwd().parent / "shared" / "data" / "broad"))
     cands.append(("default download location", Path.cwd() / "data" / "broad"))
     return cands
+
+
+def resolve_data_dirs(data=None) -> list[Path]:
+    """``resolve_data_dir`` of each directory of ``data`` (``None``, one directory or a list of them;
+    an empty list is ``None``), the same directory given twice kept once."""
+    if isinstance(data, (list, tuple)):
+        data = [d for d in data if d not in (None, "")]
+    if not data:
+        return [resolve_data_dir(None)]
+    out = []
+    for d in ([data] if isinstance(data, (str, os.PathLike)) else data):
+        p = resolve_data_dir(d)
+        if p not in out:
+            out.append(p)
+    return out
 
 
 def resolve_data_dir(cli_dir=None) -> Path:

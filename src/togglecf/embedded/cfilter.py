@@ -7,7 +7,9 @@
   (streaming features, trees every hop, softmax, toggling step 1-7), float32, no heap, all
   state in one fixed-size ``tcf_filter_t`` (templates shipped in ``togglecf/embedded/``);
 * ``tcf_config.h``: generated: rate, window, hop, EMA constants, the learned gains of
-  ``gains.json`` (9D or 6D), class names and the hashes of the model files it came from;
+  ``gains.json`` (9D or 6D; time constants there, converted here to per-sample gains for the
+  export rate ``fs``: k = 1 − exp(−1/(fs·τ)), the Python filter's coefficients at that rate),
+  class names and the hashes of the model files it came from;
 * ``tcf_forest.h`` / ``tcf_forest.c``: the merged forest (``export.forest_to_c``, outputs
   S class margins, η_a xyz, η_m xyz) without the trees the filter never uses (the outputs
   ``ModelTogglingFilter`` drops: η_a at noise weight 0; η_m in 6D, or at noise weight 0 without
@@ -76,7 +78,7 @@ def _c_string(s: str) -> str:
     return '"' + str(s).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, class_names, static_index: int,
+def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, params, class_names, static_index: int,
                    window: int, hop: int, feat_params, schema_hash: str, model_hash: str, gains_hash: str,
                    dropped) -> str:
     lam_ref, lam_lp, gravity = float(feat_params.ref_decay), float(feat_params.lp_decay), float(feat_params.gravity)
@@ -113,11 +115,14 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, class
 #define TCF_LAM_LP_C {c_float(1.0 - lam_lp)}
 #define TCF_GRAVITY {c_float(gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
 
-/* learned gains (gains.json, {'9d' if use_mag else '6d'}), per class in the order above */
-#define TCF_ALPHA_ACC_INIT {arr(settings.alpha_acc)}
-#define TCF_ALPHA_MAG_INIT {arr(settings.alpha_mag)}
-#define TCF_GAMMA {c_float(settings.gamma)}
-#define TCF_BIAS_GAIN {c_float(settings.bias_gain)}
+/* learned gains (gains.json, {'9d' if use_mag else '6d'}), per class in the order above: per-sample gains at
+ * TCF_FS, k = 1 - exp(-TCF_DT / tau) of the learned time constants (this build is for TCF_FS only)
+ * tau_acc [s] {', '.join(f'{t:g}' for t in settings.tau_acc)}; tau_mag [s] {', '.join(f'{t:g}' for t in settings.tau_mag)}
+ * output_tau {settings.output_tau:g} s, bias_tau {settings.bias_tau:g} s */
+#define TCF_ALPHA_ACC_INIT {arr(params.alpha_acc)}
+#define TCF_ALPHA_MAG_INIT {arr(params.alpha_mag)}
+#define TCF_GAMMA {c_float(params.gamma)}
+#define TCF_BIAS_GAIN {c_float(params.bias_gain)}
 #define TCF_BIAS_GATE {c_float(settings.bias_gate)}       /* rad/s */
 #define TCF_STATIC_INDEX {static_index}     /* class in which the gyro bias is learned: {settings.static_state} */
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(settings.mag_disturbance_scale)}   /* uT, 0 = off */
@@ -216,7 +221,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     sr = meta.get("sampling_rate")
     if sr is not None and abs(fs / float(sr) - 1.0) > _FS_RTOL:
         raise ValueError(f"fs = {fs:g} Hz differs from the models' sampling_rate {float(sr):g} Hz in {meta_path}: "
-                         "the window, hop and per-sample gains were learned at that rate; export for "
+                         "the models' features were learned at that rate; export for "
                          f"fs={float(sr):g} (and resample the IMU to it) or retrain at {fs:g} Hz")
     _check_feature_layout()
 
@@ -243,7 +248,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     for name in TEMPLATES:
         files.append(atomic_write_text(out_dir / name, template(name)))
     files.append(atomic_write_text(out_dir / "tcf_config.h", _config_header(
-        model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, settings=s, class_names=classes,
+        model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, settings=s, params=filt.params, class_names=classes,
         static_index=s.states.index(s.static_state), window=L, hop=hop, feat_params=filt._features.params,
         schema_hash=schema_hash, model_hash=model_hash, gains_hash=gains_hash, dropped=dropped)))
     comment = (f"model {model_dir.resolve().name}: outputs {', '.join(classes)} (margins), eta_acc xyz, eta_mag xyz"
@@ -258,7 +263,10 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(p) for p in files],
               "fs": fs, "use_mag": bool(use_mag), "window": L, "hop": hop, "n_classes": k, "class_names": classes,
               "n_features": int(forest.n_features), "n_trees": int(len(forest.roots)), "n_nodes": n_nodes,
-              "dropped_outputs": dropped, "settings": asdict(s), "schema_hash": schema_hash,
+              "dropped_outputs": dropped, "settings": asdict(s),
+              "per_sample_gains": {"alpha_acc": filt.params.alpha_acc.tolist(), "alpha_mag": filt.params.alpha_mag.tolist(),
+                                   "gamma": float(filt.params.gamma), "bias_gain": float(filt.params.bias_gain)},
+              "schema_hash": schema_hash,
               "model_hash": model_hash, "gains_sha256": gains_hash,
               "state_bytes_formula": "4 * (52 + 16 * window + n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}

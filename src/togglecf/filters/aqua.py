@@ -16,6 +16,10 @@ filter for IMUs and MARGs", Sensors 15(8):19302-19330, 2015 (equation numbers as
    Δq_mag rotates l's horizontal part onto north about the vertical only; scaled with the
    constant gain β̄ the same way; q = Δq̄_mag ⊗ q'.
 
+Gains: the paper's ᾱ, β̄ and λ_b are per-sample weights; here each is set as a time constant
+[s] (``tau_acc``, ``tau_mag``, ``bias_tau``) and converted once from the nominal ``Ts`` as
+k = 1 − exp(−Ts/τ) (``filters.timeconst``), so the same settings mean the same at any rate.
+
 Conventions: the paper's quaternion ^L_G q is the conjugate of ours (sensor -> earth) and its
 global frame is x north (NWU). Therefore Δq here is the conjugate of the paper's and is
 applied on the left; Δq_mag is the paper's eq. 58 with (l_x, l_y)_NWU = (l_y, −l_x)_ENU:
@@ -46,6 +50,7 @@ from togglecf.filters.base import (
     store_quat,
     vector_ok,
 )
+from togglecf.filters.timeconst import gain
 
 __all__ = ["AquaFilter", "AquaSettings", "adaptive_gain", "scale_delta_quat"]
 
@@ -53,35 +58,40 @@ __all__ = ["AquaFilter", "AquaSettings", "adaptive_gain", "scale_delta_quat"]
 @dataclass(frozen=True)
 class AquaSettings(FilterSettings):
     """Attributes (defaults: the TAGP over the 25 BROAD trials in shared/, 9D, 285.7 Hz, found on
-    gain_acc × gain_mag grids (0.00005..0.02 × 0.00002..0.01, coarse to fine, bias on/off)
+    per-sample ᾱ × β̄ grids (0.00005..0.02 × 0.00002..0.01, coarse to fine, bias on/off)
     and then on the bias thresholds: mean total RMSE 5.565°, heading 4.815°, inclination
-    2.595°; without the bias estimation the best of that grid is 10.1°):
+    2.595°; without the bias estimation the best of that grid is 10.1°. The time constants
+    below are those per-sample gains α at BROAD's 285.714 Hz, τ = −Ts/ln(1 − α), rounded):
 
-        gain_acc: static accelerometer gain ᾱ in [0, 1] per sample. Default 0.0003.
-        gain_mag: magnetometer gain β̄ in [0, 1] per sample. Default 0.00005.
+        tau_acc: time constant [s] of the accelerometer correction; the static gain
+            ᾱ = 1 − exp(−Ts/τ) (0: ᾱ = 1, < 0: off). Default 11.66 s (ᾱ = 0.0003 at 285.714 Hz).
+        tau_mag: time constant [s] of the magnetometer (heading) correction, β̄ likewise.
+            Default 70.0 s (β̄ = 0.00005 at 285.714 Hz).
         adaptive: scale ᾱ with ``adaptive_gain`` (True, default) or use it as is.
         err_low, err_high: magnitude-error thresholds t1 < t2 of the adaptive gain
             (e_m = |‖a‖ − g|/g): full gain up to t1 (0.1), linear fall to zero at t2 (0.2).
         lerp_threshold: ε; Δq_w > ε uses LERP, else SLERP. Default 0.9 (the paper's).
         gravity: g [m/s²]. Default 9.81.
-        bias_alpha: λ_b, low-pass gain of the steady-state bias update. Default 0.002
-            (imu_tools: 0.01).
+        bias_tau: time constant [s] of the steady-state bias low-pass, λ_b = 1 − exp(−Ts/τ)
+            (< 0: off). Default 1.748 s (λ_b = 0.002 at 285.714 Hz; imu_tools' 0.01 at its rate).
         acc_threshold: k_a [m/s²], |‖a‖ − g| below it counts as steady. Default 0.1.
         delta_gyro_threshold: k_Δω [rad/s], per-axis change of ω between samples. Default 0.03
-            (imu_tools: 0.01; BROAD's gyro noise at 285.7 Hz often exceeds 0.01 at rest).
+            (imu_tools: 0.01; BROAD's gyro noise at 285.7 Hz often exceeds 0.01 at rest). A
+            threshold on the sample-to-sample change, dominated by the gyro's noise, so it is
+            kept per sample (not converted to rad/s²).
         gyro_threshold: k_ω [rad/s], per-axis |ω − b|. Default 0.05 (imu_tools: 0.2, which
             lets slow rotations, e.g. of a gimbal, count as "steady" and leak into b).
         estimate_bias: enable the bias update (default True).
     """
 
-    gain_acc: float = 0.0003
-    gain_mag: float = 0.00005
+    tau_acc: float = 11.66
+    tau_mag: float = 70.0
     adaptive: bool = True
     err_low: float = 0.1
     err_high: float = 0.2
     lerp_threshold: float = 0.9
     gravity: float = 9.81
-    bias_alpha: float = 0.002
+    bias_tau: float = 1.748
     acc_threshold: float = 0.1
     delta_gyro_threshold: float = 0.03
     gyro_threshold: float = 0.05
@@ -89,9 +99,6 @@ class AquaSettings(FilterSettings):
 
     def __post_init__(self):
         super().__post_init__()
-        for k in ("gain_acc", "gain_mag", "bias_alpha"):
-            if not 0.0 <= getattr(self, k) <= 1.0:
-                raise ValueError(f"{k} must be in [0, 1], got {getattr(self, k)}")
         if not 0.0 <= self.err_low < self.err_high:
             raise ValueError(f"need 0 <= err_low < err_high, got {self.err_low}, {self.err_high}")
         if not (self.gravity > 0 and self.acc_threshold >= 0 and self.delta_gyro_threshold >= 0
@@ -101,8 +108,9 @@ class AquaSettings(FilterSettings):
 
 class AquaCoefficients(NamedTuple):
     """``params`` of ``aqua_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
-    the ``AquaSettings`` of the same names (the two switches ``adaptive`` and ``estimate_bias``
-    as 1.0/0.0)."""
+    the per-sample gains ``gain_acc`` (ᾱ), ``gain_mag`` (β̄) and ``bias_alpha`` (λ_b) from the
+    settings' ``tau_acc``, ``tau_mag``, ``bias_tau`` and ``Ts``, and the other ``AquaSettings`` of
+    the same names (the two switches ``adaptive`` and ``estimate_bias`` as 1.0/0.0)."""
 
     use_mag: float
     max_dt: float
@@ -216,7 +224,7 @@ def aqua_step(state, params, gyr, acc, mag, dt, diag):
 
 
 class AquaFilter(OrientationFilter):
-    """AQUA (Valenti et al. 2015): ``AquaFilter(fs, gain_acc=0.0003, gain_mag=0.00005)``."""
+    """AQUA (Valenti et al. 2015): ``AquaFilter(fs, tau_acc=11.66, tau_mag=70.0)`` (τ in s)."""
 
     name = "aqua"
     Settings = AquaSettings
@@ -227,6 +235,8 @@ class AquaFilter(OrientationFilter):
 
     def _coefficients(self) -> dict:
         s = self.settings
-        own = {f: getattr(s, f) for f in AquaCoefficients._fields[2:]}  # named as the settings
+        per_sample = {"gain_acc": s.tau_acc, "gain_mag": s.tau_mag, "bias_alpha": s.bias_tau}
+        own = {f: (gain(per_sample[f], self.Ts) if f in per_sample else getattr(s, f))
+               for f in AquaCoefficients._fields[2:]}  # the others named as the settings
         own.update(adaptive=float(s.adaptive), estimate_bias=float(s.estimate_bias))
         return own

@@ -6,8 +6,10 @@ Per sample (``Ts`` or the given Δt):
 2. acc/mag orientation        q_am = from_acc_mag(a, m)      (6D: a + predicted north)
 3. complementary blend (LERP) q    = normalize((1 − α) q_g + α q_am),  q_am on q_g's hemisphere
 
-α is the weight of the acc/mag measurement per sample; the time constant of the correction
-is about ``Ts / α`` (α = 0.00028 at 285.7 Hz: ~12.5 s).
+α is the weight of the acc/mag measurement per sample, derived from the correction's time
+constant ``CFSettings.tau`` [s] and the nominal sampling time: α = 1 − exp(−Ts/τ)
+(``filters.timeconst``; the nominal ``Ts``, not each sample's Δt, as VQF does). So the same τ
+corrects a tilt error with the same time constant in seconds at any sampling rate.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ from togglecf.filters.base import (
     store_quat,
     vector_ok,
 )
+from togglecf.filters.timeconst import gain
 
 __all__ = ["CFSettings", "ComplementaryFilter"]
 
@@ -34,23 +37,21 @@ __all__ = ["CFSettings", "ComplementaryFilter"]
 @dataclass(frozen=True)
 class CFSettings(FilterSettings):
     """Attributes:
-        alpha: weight of the acc/mag orientation per sample, in [0, 1]. Default 0.00028, the
-            TAGP over the 25 BROAD trials in shared/ (9D, 285.7 Hz; coarse grid 0.00002..0.05,
-            then 0.0002:0.0004:0.00002): mean total RMSE 10.421°. Small, because this IMU's gyro biases (0.2-0.5 °/s) and
-            up to ~2 m/s² of linear acceleration pull in opposite directions.
+        tau: time constant [s] of the acc/mag correction (per-sample weight α = 1 − exp(−Ts/τ);
+            0: the acc/mag orientation alone, < 0: gyro only). Default 12.5 s: the former
+            per-sample default α = 0.00028 at BROAD's 285.714 Hz (τ = −Ts/ln(1 − α) = 12.498 s),
+            the TAGP over the 25 BROAD trials in shared/ (9D; coarse grid α 0.00002..0.05, then
+            0.0002:0.0004:0.00002): mean total RMSE 10.421°. Long, because this IMU's gyro
+            biases (0.2-0.5 °/s) and up to ~2 m/s² of linear acceleration pull in opposite
+            directions.
     """
 
-    alpha: float = 0.00028
-
-    def __post_init__(self):
-        super().__post_init__()
-        if not 0.0 <= self.alpha <= 1.0:
-            raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
+    tau: float = 12.5
 
 
 class CFCoefficients(NamedTuple):
     """``params`` of ``cf_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
-    ``alpha``, the weight of the acc/mag orientation per sample (``CFSettings.alpha``)."""
+    ``alpha``, the weight of the acc/mag orientation per sample (from ``CFSettings.tau`` and ``Ts``)."""
 
     use_mag: float
     max_dt: float
@@ -81,7 +82,7 @@ def cf_step(state, params, gyr, acc, mag, dt, diag):
 
 
 class ComplementaryFilter(OrientationFilter):
-    """Fixed-gain quaternion CF: ``ComplementaryFilter(fs, alpha=0.006, use_mag=True)``."""
+    """Fixed-gain quaternion CF: ``ComplementaryFilter(fs, tau=12.5, use_mag=True)`` (τ in s)."""
 
     name = "cf"
     Settings = CFSettings
@@ -90,4 +91,4 @@ class ComplementaryFilter(OrientationFilter):
     step = cf_step
 
     def _coefficients(self) -> dict:
-        return {"alpha": self.settings.alpha}
+        return {"alpha": gain(self.settings.tau, self.Ts)}

@@ -16,6 +16,12 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
 
+Gains: every per-sample gain above (α_a[s], α_m[s], k_b, γ) is set as a time constant [s] in
+``TogglingSettings`` (``tau_acc``, ``tau_mag``, ``bias_tau``, ``output_tau``) and converted once
+from the filter's nominal ``Ts`` as k = 1 − exp(−Ts/τ) (``filters.timeconst``; τ = 0: k = 1,
+τ < 0: k = 0). The kernel gets the per-sample values through ``TogglingCoefficients``. The
+coefficients use the nominal ``Ts``, not each sample's Δt (as VQF does).
+
 Why this geometric form: blending the *vectors* (step 5) gives tilt and heading their own
 gains (``from_acc_mag`` takes tilt from a_pred only and heading from m_pred's horizontal
 part), and the LERP of step 7 is the quaternion equivalent of projecting
@@ -48,6 +54,7 @@ from togglecf.filters.base import (
     store_quat,
     vector_ok,
 )
+from togglecf.filters.timeconst import gain
 
 __all__ = [
     "N_PRED_NOISE",
@@ -66,24 +73,30 @@ _STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_p
 class TogglingSettings(FilterSettings):
     """Attributes:
         states: motion-state names, in the order of the classifier's classes.
-        alpha_acc: per-state weight of the denoised accelerometer per sample, in [0, 1].
-        alpha_mag: per-state weight of the denoised magnetometer per sample, in [0, 1].
-        gamma: output blend weight of the acc/mag orientation (1: vectors only), in (0, 1].
+        tau_acc: per-state time constant [s] of the denoised accelerometer's vector CF (step 5):
+            α_a[s] = 1 − exp(−Ts/τ) (0: α = 1; < 0: α = 0, no tilt correction in that state).
+        tau_mag: per-state time constant [s] of the denoised magnetometer's, likewise.
+        output_tau: time constant [s] of the output blend (step 7), γ = 1 − exp(−Ts/τ);
+            0 (default): γ = 1, the orientation from the vectors only. Must be >= 0.
         static_state: name of the state in which the gyro bias is learned.
-        bias_gain: per-sample low-pass gain of the bias estimate at p_static = 1 (0 disables).
+        bias_tau: time constant [s] of the bias low-pass at p_static = 1 (k_b = 1 − exp(−Ts/τ);
+            < 0 disables the bias estimate).
         bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
         mag_disturbance_scale: σ_m [µT] of step 4; 0 turns the disturbance scaling off.
         noise_weight_acc, noise_weight_mag: w_a, w_m of step 3, in [0, 1].
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
-    on the training trials and stores them with the models.
+    on the training trials and stores them with the models (``gains.json``, format 2). They are
+    the former per-sample defaults at BROAD's 285.714 Hz, τ = −Ts/ln(1 − α) rounded to 4
+    digits: α_acc (0.01, 0.0005) -> (0.3482, 6.998) s, α_mag (0.002, 0.0005) -> (1.748, 6.998) s,
+    bias gain 0.002 -> 1.748 s, γ = 1 -> 0 s.
     """
 
     states: tuple = ("static", "dynamic")
-    alpha_acc: tuple = (0.01, 0.0005)
-    alpha_mag: tuple = (0.002, 0.0005)
-    gamma: float = 1.0
+    tau_acc: tuple = (0.3482, 6.998)
+    tau_mag: tuple = (1.748, 6.998)
+    output_tau: float = 0.0
     static_state: str = "static"
-    bias_gain: float = 0.002
+    bias_tau: float = 1.748
     bias_gate: float = 0.05
     mag_disturbance_scale: float = 0.0
     noise_weight_acc: float = 1.0
@@ -93,23 +106,23 @@ class TogglingSettings(FilterSettings):
         super().__post_init__()
         n = len(self.states)
         object.__setattr__(self, "states", tuple(self.states))
-        object.__setattr__(self, "alpha_acc", tuple(float(a) for a in self.alpha_acc))
-        object.__setattr__(self, "alpha_mag", tuple(float(a) for a in self.alpha_mag))
-        if n < 1 or len(self.alpha_acc) != n or len(self.alpha_mag) != n:
-            raise ValueError(f"alpha_acc and alpha_mag need one gain per state {self.states}")
-        for name in ("alpha_acc", "alpha_mag"):
-            if not all(0.0 <= a <= 1.0 and math.isfinite(a) for a in getattr(self, name)):
-                raise ValueError(f"{name} gains must be in [0, 1], got {getattr(self, name)}")
-        if not 0.0 < self.gamma <= 1.0:
-            raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
+        object.__setattr__(self, "tau_acc", tuple(float(a) for a in self.tau_acc))
+        object.__setattr__(self, "tau_mag", tuple(float(a) for a in self.tau_mag))
+        if n < 1 or len(self.tau_acc) != n or len(self.tau_mag) != n:
+            raise ValueError(f"tau_acc and tau_mag need one time constant per state {self.states}")
+        for name in ("tau_acc", "tau_mag"):
+            if not all(math.isfinite(a) for a in getattr(self, name)):
+                raise ValueError(f"{name} must be finite time constants [s], got {getattr(self, name)}")
+        if not self.output_tau >= 0.0:
+            raise ValueError(f"output_tau must be >= 0 s, got {self.output_tau}")
         if self.static_state not in self.states:
             raise ValueError(f"static_state {self.static_state!r} is not one of {self.states}")
         if not (0.0 <= self.noise_weight_acc <= 1.0 and 0.0 <= self.noise_weight_mag <= 1.0):
             raise ValueError("noise weights must be in [0, 1]")
         if self.mag_disturbance_scale < 0.0:
             raise ValueError(f"mag_disturbance_scale must be >= 0 µT, got {self.mag_disturbance_scale}")
-        if not (0.0 <= self.bias_gain <= 1.0 and self.bias_gate >= 0.0):
-            raise ValueError("bias_gain must be in [0, 1] and bias_gate >= 0")
+        if not self.bias_gate >= 0.0:
+            raise ValueError(f"bias_gate must be >= 0 rad/s, got {self.bias_gate}")
 
 
 class TogglingCoefficients(NamedTuple):
@@ -117,9 +130,12 @@ class TogglingCoefficients(NamedTuple):
 
     Attributes:
         n_states: number of motion states S (``len(TogglingSettings.states)``).
-        alpha_acc, alpha_mag: per-state gains, float64 arrays ``(S,)``.
+        alpha_acc, alpha_mag: per-state gains per sample, float64 arrays ``(S,)``, from
+            ``TogglingSettings.tau_acc``/``tau_mag`` and ``Ts`` (module docstring, "Gains").
+        gamma: output blend weight per sample, from ``output_tau``.
+        bias_gain: bias low-pass gain per sample at p_static = 1, from ``bias_tau``.
         static_index: index of ``static_state`` in ``states`` (its probability drives the bias).
-        gamma, bias_gain, bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag:
+        bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag:
             the ``TogglingSettings`` of the same names.
     """
 
@@ -297,8 +313,10 @@ class TogglingFilter(PredictionDrivenFilter):
 
     def _coefficients(self) -> dict:
         s = self.settings
-        return {"n_states": len(s.states), "alpha_acc": np.array(s.alpha_acc), "alpha_mag": np.array(s.alpha_mag),
-                "gamma": s.gamma, "bias_gain": s.bias_gain, "static_index": s.states.index(s.static_state),
+        ts = self.Ts
+        return {"n_states": len(s.states), "alpha_acc": np.array([gain(t, ts) for t in s.tau_acc]),
+                "alpha_mag": np.array([gain(t, ts) for t in s.tau_mag]), "gamma": gain(s.output_tau, ts),
+                "bias_gain": gain(s.bias_tau, ts), "static_index": s.states.index(s.static_state),
                 "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
 

@@ -46,17 +46,33 @@ from scipy.signal import savgol_filter
 
 from togglecf.core import quaternion as quat
 from togglecf.core.io import check_keys
-from togglecf.data.broad import GRAVITY, Trial
+from togglecf.data.broad import GRAVITY, DataError, Trial
 
 __all__ = [
     "STATE_NAMES", "BINARY_NAMES", "LabelSettings", "Targets", "bridge_gaps", "angular_velocity",
     "linear_acceleration", "estimate_mag_ref", "noise_targets", "motion_state", "ransac_inliers",
-    "make_targets", "state_names",
+    "make_targets", "state_names", "LABEL_FIELDS", "missing_label_field",
 ]
 
 STATE_NAMES = ("rest", "rotation", "linear_acceleration", "vibration")
 BINARY_NAMES = ("static", "dynamic")
 G_ENU = np.array([0.0, 0.0, GRAVITY])
+
+#: the fields the training labels need beyond what evaluation needs (``data.broad.REQUIRED_FIELDS``),
+#: and why. Without ``opt_pos`` training refuses the trial rather than make other labels: the linear
+#: acceleration would have to come from the accelerometer itself (``a_meas − R_trueᵀ g``), which makes
+#: the vibration residual identically zero and the RANSAC check of the reference vacuous, i.e. a
+#: different label set mixed silently with this one.
+LABEL_FIELDS = {
+    "opt_pos": "training needs it for the labels (the motion state's linear acceleration is the second derivative "
+               "of the optical position; the vibration label and the RANSAC cleaning use it too); evaluation does "
+               "not need it, so leave this trial out of training (--trials) or add opt_pos [m, (N,3)]",
+}
+
+
+def missing_label_field(source, field_name: str) -> DataError:
+    """The one-line error for a trial (file ``source``) without the label field ``field_name``."""
+    return DataError(source, field_name, f"missing: {LABEL_FIELDS[field_name]}")
 
 
 def state_names(label_set: str) -> tuple[str, ...]:
@@ -307,6 +323,9 @@ def ransac_inliers(acc, predicted, valid, threshold: float, seed: int = 0, max_t
 def make_targets(trial: Trial, settings: LabelSettings | None = None) -> Targets:
     """All targets of one trial (see the module docstring)."""
     s = settings or LabelSettings()
+    for name in LABEL_FIELDS:
+        if getattr(trial, name, None) is None:
+            raise missing_label_field(trial.source if trial.source is not None else trial.name, name)
     fs = trial.fs
     q_ref, q_valid = bridge_gaps(trial.opt_quat, fs, s.max_gap_s)
     omega = angular_velocity(q_ref, fs, s.smooth_s)

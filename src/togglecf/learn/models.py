@@ -13,7 +13,8 @@ Settings: ``tree_method = hist``, ``nthread`` (default 2) and a fixed ``seed``, 
 give byte-identical model files. Models are saved as UBJSON (``.ubj``), never pickled.
 
 ``save_bundle`` / ``load_bundle`` write and read a model directory (see ``models/README.md``):
-model files, ``metadata.json`` (schema, settings, file hashes, CV metrics, versions).
+model files, ``metadata.json`` (``bundle_format``, schema, settings, the training trials' sampling
+rates, file hashes, CV metrics, versions).
 """
 from __future__ import annotations
 
@@ -33,7 +34,9 @@ __all__ = ["MotionClassifier", "NoiseRegressor", "ModelBundle", "save_bundle", "
            "classification_metrics", "regression_metrics", "SchemaMismatchError", "AXES"]
 
 AXES = ("x", "y", "z")
-BUNDLE_FORMAT = 1
+#: ``metadata.json`` ``bundle_format``: 2 adds ``sampling_rates`` (Hz, of the training trials) and
+#: goes with ``gains.json`` format 2 (time constants, ``toggling.gains.GAINS_FORMAT``); 1: per-sample gains
+BUNDLE_FORMAT = 2
 
 # OpenMP threads that spin while waiting make XGBoost ~9x slower (measured: 6.8 s vs 0.8 s for
 # 20 trees) when the machine's cores are shared with other work; sleeping waits avoid that. Only

@@ -28,10 +28,10 @@ from pathlib import Path
 
 from togglecf.core.config import BACKENDS
 from togglecf.core.progress import progress
-from togglecf.data.broad import DatasetIndex
+from togglecf.data.broad import DatasetIndex, open_index
 
 __all__ = ["BACKENDS", "BackendError", "Outcome", "Backend", "LocalBackend", "InlineBackend", "DaskBackend",
-           "make_backend", "load_trial_cached", "trial_identity", "DASK_INSTALL_HINT"]
+           "make_backend", "load_trial_cached", "trial_identity", "data_location", "DASK_INSTALL_HINT"]
 
 DASK_INSTALL_HINT = "pip install 'togglecf[dask]'"
 
@@ -251,10 +251,21 @@ def trial_identity(path) -> str:
     return f"{Path(path).name}:{st.st_size}:{st.st_mtime_ns}"
 
 
+def data_location(index) -> str | tuple[str, ...]:
+    """What a task needs to find ``index``'s trials where it runs (``load_trial_cached``'s ``root``):
+    the absolute directory of a ``DatasetIndex``, the tuple of them of a ``MultiIndex``."""
+    root = index.root
+    if isinstance(root, (tuple, list)):
+        return tuple(str(Path(r).resolve()) for r in root)
+    return str(Path(root).resolve())
+
+
 def load_trial_cached(root, name):
-    """``DatasetIndex.from_dir(root).load(name)``, keeping the last few trials of this process in memory
-    (a worker gets several chunks of the same trial in a row)."""
-    index = DatasetIndex.from_dir(root)
+    """``open_index(root).load(name)``, keeping the last few trials of this process in memory (a worker
+    gets several chunks of the same trial in a row). ``root``: one data directory (``DatasetIndex``,
+    plain trial names) or a tuple of them (``MultiIndex``, names ``<dataset>/<trial>``), as given by
+    ``data_location``."""
+    index = DatasetIndex.from_dir(root) if isinstance(root, (str, os.PathLike)) else open_index(list(root))
     if name not in index.available:
         raise KeyError(f"trial {name} is not present in {root} (as seen from this worker)")
     key = (str(root), name, trial_identity(index.available[name]))

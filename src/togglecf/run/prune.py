@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from togglecf.core.io import atomic_write_bytes, atomic_write_text
-from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import open_index
 from togglecf.embedded.forest_export import bundle_boosters
 from togglecf.embedded.measure import array_measurements, tl2cgen_sizes, used_boosters, used_features
 from togglecf.embedded.toolchain import RISCV_GCC
@@ -47,7 +47,7 @@ from togglecf.learn.dataset import build_dataset
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.labels import LabelSettings
 from togglecf.learn.models import load_bundle
-from togglecf.parallel.backend import InlineBackend, load_trial_cached
+from togglecf.parallel.backend import InlineBackend, data_location, load_trial_cached
 from togglecf.registry import TOGGLING, FilterSpec
 from togglecf.report.study_report import png_bytes
 from togglecf.run.config import load_config
@@ -206,7 +206,8 @@ def pruning_sweep(model_dir, out_dir, points=None, folds: int = 5, inner_folds: 
                              ransac=label_settings.ransac, backend=backend)
         log(f"dataset built once in {time.perf_counter() - t0:.0f} s")
         handle = backend.scatter(data)
-        tasks = [((i, k), (p.apply(cfg0), handle, str(index.root), names, test, str(out / "runs" / p.key / f"fold{k}"),
+        where = data_location(index)
+        tasks = [((i, k), (p.apply(cfg0), handle, where, names, test, str(out / "runs" / p.key / f"fold{k}"),
                            riscv, k == 0))
                  for i, p in enumerate(todo) for k, test in enumerate(test_sets)]
         parts = {i: {} for i in range(len(todo))}
@@ -234,7 +235,9 @@ def _sweep_setup(model_dir, data_dir, folds, inner_folds):
     cfg0 = load_config(bundle.metadata["config"])
     cfg0["gains"].update(learn=True, modes=["9d"])
     cfg0["run"]["cv_folds"] = inner_folds
-    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    if not data_dir and isinstance(bundle.metadata.get("data_dir"), list):
+        data_dir = bundle.metadata["data_dir"]  # trained on several directories: its names carry them
+    index = open_index(data_dir or None)
     names = index.select(",".join(bundle.metadata["training_trials"]))
     identity = _sweep_identity(cfg0, names, folds, inner_folds, bundle.metadata.get("data_files"))
     return cfg0, index, names, identity

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from togglecf.core.config import config_path
-from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import open_index
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
@@ -186,7 +186,7 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     jobs = cfg.jobs or os.cpu_count() or 1
     out = Path(out_dir)
     t_start = time.perf_counter()
-    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    index = open_index(data_dir or load_config(cfg.train_config)["run"]["data"] or None)  # --data > [run] data
     names = index.select(trials)
     log.info(index.summary())
     folds = trial_folds(names, cfg.folds, cfg.fold_seed)
@@ -227,8 +227,8 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
         info["train_s"] = res["timing"]["final_fit_s"] + res["timing"]["dataset_s"] + res["timing"].get("cv_s", 0.0)
         info["gains_s"] = res["timing"].get("gains_s", 0.0)
         hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
-        info["gains"] = {"alpha_acc": gains9.alpha_acc, "alpha_mag": gains9.alpha_mag, "gamma": gains9.gamma,
-                         "bias_gain": gains9.bias_gain, "mag_disturbance_scale": gains9.mag_disturbance_scale,
+        info["gains"] = {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
+                         "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                          "train_objective_deg": hist[-1][2]}
         log.info(f"  models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}")
         # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
@@ -315,16 +315,16 @@ def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, i
             p[:, :ns] = 0.0
             p[:, 0] = 1.0
             return p
-        variants["noise_only"] = (one_state, True, replace(cfg.gains, bias_gain=(0.0,)))
+        variants["noise_only"] = (one_state, True, replace(cfg.gains, bias_tau=(-1.0,)))
     for name, (transform, use_mag, search) in variants.items():
         start = None
         if name == "noise_only":
-            start = replace(gains9, bias_gain=0.0)
+            start = replace(gains9, bias_tau=-1.0)
         s, hist = learn_gains([loaded[n] for n in train], [transform(preds[n]) for n in train], models.class_names,
                               models.static_state, use_mag=use_mag, search=search, start=start, jobs=jobs)
         if name == "noise_only":  # one gain for all states: the learner only moves state 0's, copy it
-            s = replace(s, alpha_acc=(s.alpha_acc[0],) * ns, alpha_mag=(s.alpha_mag[0],) * ns)
-        info.setdefault("ablation_gains", {})[name] = {"alpha_acc": s.alpha_acc, "alpha_mag": s.alpha_mag}
+            s = replace(s, tau_acc=(s.tau_acc[0],) * ns, tau_mag=(s.tau_mag[0],) * ns)
+        info.setdefault("ablation_gains", {})[name] = {"tau_acc": s.tau_acc, "tau_mag": s.tau_mag}
         for n in test:
             t = loaded[n]
             o = TogglingFilter(t.fs, s, use_mag=use_mag).update_batch(t.gyr, t.acc, t.mag if use_mag else None,

@@ -2,7 +2,8 @@
 
 A sweep is every parameter dict of a list on every named trial. Tasks are (trial, chunk of
 parameter dicts); each loads its trial where it runs (from the data directory's path, which the
-workers must be able to read) and returns one ``TrialResult`` per parameter dict.
+workers must be able to read; all of them for an index over several directories) and returns one
+``TrialResult`` per parameter dict.
 
 Journal (``ResultStore``, JSON lines, one line per (trial, parameter dict), flushed after every
 finished task): each result is keyed by the filter, 6D/9D, the parameters, the trial, the trial
@@ -30,7 +31,7 @@ from pathlib import Path
 from togglecf import __version__
 from togglecf.data.broad import DataError, check_evaluable
 from togglecf.metrics.broad import TagpResult, tagp
-from togglecf.parallel.backend import Backend, LocalBackend, load_trial_cached, trial_identity
+from togglecf.parallel.backend import Backend, LocalBackend, data_location, load_trial_cached, trial_identity
 from togglecf.registry import filter_spec
 from togglecf.run.scoring import TrialResult, grid_points, score_trial, warm_up
 
@@ -158,7 +159,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
     """
     backend = backend or LocalBackend()
     specs = [filter_spec(filter_name, p, use_mag) for p in params_list]  # validated here, before any worker starts
-    root = str(Path(index.root).resolve())
+    root = data_location(index)  # one directory, or the tuple of a MultiIndex's
     extra = specs[0].identity() if specs else None
     ids = {n: trial_identity(index.available[n]) for n in names}
     keys = {(n, i): point_key(filter_name, use_mag, p, ids[n], extra) for n in names for i, p in enumerate(params_list)}

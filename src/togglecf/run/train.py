@@ -20,14 +20,14 @@ import xgboost
 
 from togglecf import __version__
 from togglecf.core.io import atomic_write_text
-from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.data.broad import open_index, trial_fields
 from togglecf.features.windows import FeatureSettings, feature_schema
 from togglecf.learn.compiled import hold_predictions
 from togglecf.learn.cv import cross_validate, format_cv_table
 from togglecf.learn.dask_fit import fit_models_dask
 from togglecf.learn.dataset import WindowData, build_dataset, dataset_settings
 from togglecf.learn.fitting import fit_all, importances_csv
-from togglecf.learn.labels import LabelSettings, state_names
+from togglecf.learn.labels import LABEL_FIELDS, LabelSettings, missing_label_field, state_names
 from togglecf.learn.models import save_bundle
 from togglecf.parallel.backend import InlineBackend, make_backend
 from togglecf.run.config import GAIN_KEYS, load_config
@@ -81,15 +81,35 @@ class _train_backend:
             self.backend.close()
 
 
+def _data_dir_meta(index):
+    """``data_dir`` of the metadata: the directory, or the list of them (trial names ``<dataset>/<trial>``)."""
+    root = index.root
+    return [str(r) for r in root] if isinstance(root, (tuple, list)) else str(root)
+
+
+def _check_label_fields(index, names):
+    """Refuse, before any work, trials whose files lack a field the training labels need
+    (``learn.labels.LABEL_FIELDS``): a ``DataError`` naming the file, the field and why; with several
+    such trials a ``ValueError`` with one such line per trial."""
+    errors = [missing_label_field(index.available[n], f) for n in names
+              for f in LABEL_FIELDS if f not in trial_fields(index.available[n])]
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise ValueError("\n".join(str(e) for e in errors))
+
+
 def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) -> dict:
     t_start = time.perf_counter()
     cfg = load_config(config)
     run = cfg["run"]
-    index = DatasetIndex.from_dir(resolve_data_dir(data_dir))
+    index = open_index(data_dir if data_dir else (run["data"] or None))  # --data > [run] data > default
     spec = trials if trials is not None else (None if run["trials"] in ("all", "", None) else run["trials"])
     names = index.select(spec)
     if len(names) < 2:
         raise ValueError(f"training needs at least 2 trials, got {names}")
+    if dataset is None:
+        _check_label_fields(index, names)
     label_settings = LabelSettings.from_dict({**cfg["labels"], "seed": run["seed"]})
     feature_settings = FeatureSettings.from_dict(cfg["features"])
     schema = feature_schema(feature_settings)
@@ -135,11 +155,14 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     timing["total_s"] = time.perf_counter() - t_start
     metadata = {
         "run_name": run["name"], "created_by": "togglecf train", "seed": run["seed"],
-        "sampling_rate": data.fs, "window": {"window_s": feature_settings.window_s, "hop_s": feature_settings.hop_s,
+        "sampling_rate": data.fs,
+        # the training trials' rates [Hz] (bundle_format 2); the gains in gains.json are time constants [s]
+        "sampling_rates": sorted({round(float(p.get("fs", data.fs)), 6) for p in data.per_trial.values()}),
+        "window": {"window_s": feature_settings.window_s, "hop_s": feature_settings.hop_s,
                                              "window_samples": data.window_samples,
                                              "hop_samples": int(max(1, round(feature_settings.hop_s * data.fs)))},
         "label_settings": label_settings.to_dict(), "ransac": label_settings.ransac,
-        "training_trials": names, "n_training_windows": int(len(rows)), "data_dir": str(index.root),
+        "training_trials": names, "n_training_windows": int(len(rows)), "data_dir": _data_dir_meta(index),
         "data_files": {n: {"file": p["file"], "sha256": p["sha256"]} for n, p in data.per_trial.items()},
         "per_trial": {n: {k: v for k, v in p.items() if k not in ("file", "sha256")} for n, p in data.per_trial.items()},
         "config": cfg, "cv": result.get("cv"), "timing": timing, "versions": _versions(),

@@ -28,30 +28,37 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format"]
 
 logger = logging.getLogger(__name__)
 
-_ALPHA_GRID = (0.0, 0.00003, 0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
+#: s: the former per-sample grid (0, 0.00003, 0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02,
+#: 0.05) at BROAD's 285.714 Hz as time constants (``timeconst.tau_from_gain``, 4 digits; −1 = off)
+_TAU_GRID = (-1.0, 116.7, 35.0, 17.5, 6.998, 3.498, 1.748, 0.6982, 0.3482, 0.1732, 0.06824)
+
+#: ``gains.json`` format: 2 = time constants [s] and the training rate(s) (``trained_fs``);
+#: 1 (no ``format`` key) = per-sample gains at the training rate, refused by ``load_gains``
+GAINS_FORMAT = 2
 
 
 @dataclass(frozen=True)
 class GainSearch:
-    """Grids of the coordinate descent (gains per sample at the data's rate; σ_m in µT).
+    """Grids of the coordinate descent (time constants in s, ``TogglingSettings``; σ_m in µT). The
+    defaults are the former per-sample grids at BROAD's 285.714 Hz as time constants.
 
     Attributes:
-        alpha: grid of every per-state acc and mag gain.
-        gamma: grid of the output blend weight.
-        bias_gain: grid of the rest-bias low-pass gain.
+        tau: grid of every per-state acc and mag time constant [s] (< 0: that correction off).
+        output_tau: grid of the output blend's time constant [s] (0: vectors only).
+        bias_tau: grid of the rest-bias low-pass time constant [s] (< 0: no bias estimate).
         bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
         mag_disturbance_scale: grid of σ_m (0 = off).
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise.
         sweeps: passes over all parameters.
     """
 
-    alpha: tuple = _ALPHA_GRID
-    gamma: tuple = (0.3, 0.6, 1.0)
-    bias_gain: tuple = (0.0, 0.0003, 0.001, 0.003)
+    tau: tuple = _TAU_GRID
+    output_tau: tuple = (0.009813, 0.00382, 0.0)  # γ 0.3, 0.6, 1 at 285.714 Hz
+    bias_tau: tuple = (-1.0, 11.66, 3.498, 1.165)  # gains 0, 0.0003, 0.001, 0.003 at 285.714 Hz
     bias_gate: tuple = (0.02, 0.05)
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
     noise_weight_acc: tuple = (0.0, 0.5, 1.0)
@@ -64,23 +71,24 @@ class GainSearch:
                       for k, v in check_keys(cls, d, "gain-search").items()})
 
     def start(self, states, static_state) -> TogglingSettings:
-        """Where the descent starts: moderate gains in every state."""
+        """Where the descent starts: moderate gains in every state (τ_acc 3.498 s, τ_mag 11.66 s,
+        bias 3.498 s: the former per-sample 0.001, 0.0003, 0.001 at 285.714 Hz)."""
         n = len(states)
-        return TogglingSettings(states=tuple(states), static_state=static_state, alpha_acc=(0.001,) * n,
-                                alpha_mag=(0.0003,) * n, gamma=1.0, bias_gain=0.001)
+        return TogglingSettings(states=tuple(states), static_state=static_state, tau_acc=(3.498,) * n,
+                                tau_mag=(11.66,) * n, output_tau=0.0, bias_tau=3.498)
 
     def candidates(self, settings: TogglingSettings, use_mag: bool = True):
         """(label, [(value, change), ...]) for each coordinate of the descent."""
         n = len(settings.states)
-        for name in ("alpha_acc", "alpha_mag") if use_mag else ("alpha_acc",):
+        for name in ("tau_acc", "tau_mag") if use_mag else ("tau_acc",):
             for s in range(n):
                 vals = []
-                for a in self.alpha:
+                for a in self.tau:
                     g = list(getattr(settings, name))
                     g[s] = a
                     vals.append((a, {name: tuple(g)}))
                 yield f"{name}[{settings.states[s]}]", vals
-        for name in ("noise_weight_acc", "noise_weight_mag", "gamma", "bias_gain", "bias_gate") + (
+        for name in ("noise_weight_acc", "noise_weight_mag", "output_tau", "bias_tau", "bias_gate") + (
                 ("mag_disturbance_scale",) if use_mag else ()):
             yield name, [(v, {name: v}) for v in getattr(self, name)]
 
@@ -247,15 +255,24 @@ GAINS_FILE = "gains.json"
 
 def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True,
                predictions: str = "in-sample"):
-    """Write ``gains.json`` beside the models (atomically): the learned settings, the trials
-    they were learned on, the objective history and the models' schema hash they belong to."""
+    """Write ``gains.json`` beside the models (atomically): ``"format": GAINS_FORMAT``, the learned
+    settings (time constants in s), the trials they were learned on and their sampling rate(s)
+    (``trained_fs`` [Hz], per mode and for the file), the objective history and the models'
+    schema hash they belong to. A file of the old format is replaced, not merged into."""
     model_dir = Path(model_dir)
     meta = json.loads((model_dir / "metadata.json").read_text())
     key = mode_name(_KIND_OF[type(settings)], use_mag)
     path = model_dir / GAINS_FILE
     doc = json.loads(path.read_text()) if path.is_file() else {}
+    if doc.get("format") != GAINS_FORMAT:
+        doc = {}
+    rates = sorted({round(float(t.fs), 6) for t in trials if getattr(t, "fs", None) is not None})
+    doc["format"] = GAINS_FORMAT
+    doc["units"] = "time constants in s (per-sample gain k = 1 - exp(-Ts/tau) at the filter's rate)"
     doc["feature_schema_hash"] = meta["feature_schema"]["hash"]
-    doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trials": [getattr(t, "name", t) for t in trials],
+    doc["trained_fs"] = sorted(set(doc.get("trained_fs", [])) | set(rates))
+    doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trained_fs": rates,
+                "trials": [getattr(t, "name", t) for t in trials],
                 "objective": "mean total RMSE [deg] over the trials (BROAD)", "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)
@@ -275,6 +292,7 @@ def load_gains(model_dir, use_mag: bool = True, kind: str = "toggling"):
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no learned gains; run `togglecf train` (it learns them after the models)")
     doc = json.loads(path.read_text())
+    check_gains_format(doc, path)
     meta = json.loads((model_dir / "metadata.json").read_text())
     if doc.get("feature_schema_hash") != meta["feature_schema"]["hash"]:
         raise ValueError(f"{path}: gains were learned for models with another feature schema")
@@ -287,6 +305,18 @@ def load_gains(model_dir, use_mag: bool = True, kind: str = "toggling"):
                        f"`togglecf train` and [gains] modes = [..., \"{key}\"]")
     s = {k: tuple(v) if isinstance(v, list) else v for k, v in doc[key]["settings"].items()}
     return _SETTINGS_OF[kind](**s)
+
+
+def check_gains_format(doc: dict, path) -> None:
+    """Refuse a ``gains.json`` that is not of ``GAINS_FORMAT`` (the old one, without a ``format``
+    key, holds per-sample gains valid only at the rate they were learned at)."""
+    fmt = doc.get("format")
+    if fmt == GAINS_FORMAT:
+        return
+    what = ("has no \"format\" key: it is the old format (per-sample gains, valid only at the rate they were "
+            "learned at)") if fmt is None else f"has format {fmt!r}, this togglecf reads format {GAINS_FORMAT}"
+    raise ValueError(f"{path} {what}. The gains are now time constants in seconds: retrain this model directory "
+                     f"with `togglecf train` (it writes gains.json format {GAINS_FORMAT})")
 
 
 def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=None,
@@ -325,5 +355,6 @@ def describe_gains(settings) -> str:
         return (f"τ_acc {settings.tau_acc_states} s, τ_mag {settings.tau_mag_states} s, σ_motion "
                 f"{settings.bias_sigma_motion_states} °/s, c₀ {settings.confidence_floor}, noise weights "
                 f"{settings.noise_weight_acc}/{settings.noise_weight_mag}")
-    return (f"acc {settings.alpha_acc}, mag {settings.alpha_mag}, gamma {settings.gamma}, bias {settings.bias_gain}, "
+    return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
+            f"bias τ {settings.bias_tau} s, "
             f"σ_m {settings.mag_disturbance_scale}, noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")

@@ -72,10 +72,11 @@ class InLoopModels:
     """
 
     def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
-        if settings is None:
-            overrides.setdefault("states", models.class_names)
+        if settings is None:  # the model's classes; built in one go so per-state defaults match their number
+            kw = {"states": models.class_names}
             if "static_state" in {f.name for f in fields(self.Settings)}:
-                overrides.setdefault("static_state", models.static_state)
+                kw["static_state"] = models.static_state
+            settings, overrides = self.Settings(**{**kw, **overrides}), {}
         super().__init__(fs, settings, use_mag=use_mag, **overrides)
         if tuple(self.settings.states) != models.class_names:
             raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")

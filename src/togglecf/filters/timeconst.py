@@ -1,0 +1,48 @@
+"""Time constants of the filters' first-order corrections and their per-sample gains.
+
+Every gain of the complementary filters (the fixed CF, AQUA, the toggling CF, their gyro-bias
+low-passes) is a time constant τ [s] in the settings, the same at any sampling rate. Each filter
+converts it once, from its *nominal* sampling time ``Ts = 1/fs``, into the per-sample gain its
+kernel uses (its ``Coefficients``):
+
+    k = 1 − exp(−Ts/τ)          (``vqf_core.gain_from_tau``, VQF's convention)
+
+τ = 0 gives k = 1 (the measurement replaces the estimate every sample); τ < 0 gives k = 0 (the
+update is off; VQF's convention too). Like VQF, the coefficients use the nominal ``Ts``, not each
+sample's Δt (the gyro is still integrated over the actual Δt): a jittery or gappy Δt changes the
+correction's time constant in proportion to the local rate error only.
+
+The defaults were converted from the former per-sample gains α at BROAD's rate (285.714 Hz) by
+``tau_from_gain`` (τ = −Ts/ln(1 − α)), rounded to 4 significant digits, so that at that rate they
+reproduce the former coefficients to < 1e-3 relative.
+"""
+from __future__ import annotations
+
+import math
+
+from togglecf.filters.vqf_core import gain_from_tau
+
+__all__ = ["BROAD_FS", "gain", "tau_from_gain"]
+
+#: Hz, the rate of BROAD's IMU, at which the former per-sample gains were tuned
+BROAD_FS = 285.714
+
+
+def gain(tau: float, ts: float) -> float:
+    """Per-sample gain of time constant ``tau`` [s] at sampling time ``ts`` [s]: 1 − exp(−ts/τ),
+    1 for τ = 0, 0 for τ < 0 (off)."""
+    if not ts > 0:
+        raise ValueError(f"sampling time must be > 0 s, got {ts}")
+    return 0.0 if tau < 0.0 else gain_from_tau(float(tau), float(ts))
+
+
+def tau_from_gain(alpha: float, ts: float = 1.0 / BROAD_FS) -> float:
+    """The time constant [s] whose per-sample gain at ``ts`` is ``alpha``: −ts/ln(1 − α)
+    (0 for α = 1, −1 (off) for α = 0)."""
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"a per-sample gain is in [0, 1], got {alpha}")
+    if alpha == 0.0:
+        return -1.0
+    if alpha == 1.0:
+        return 0.0
+    return -ts / math.log1p(-alpha)

@@ -19,7 +19,9 @@ from togglecf.learn.trees import predict_margin_row
 __all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "inloop_step", "inloop_batch"]
 
 
-@njit(cache=True)
+# cache=False as filters.base.run_batch: numba cannot cache a function that takes another compiled
+# function as an argument (pickling the dispatcher type fails: "underlying object has vanished")
+@njit(cache=False)
 def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
                 feat, margin, pred):
@@ -47,7 +49,7 @@ def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams
     step(state, params, gyr, acc, mag, dt, pred, diag)
 
 
-@njit(cache=True)
+@njit(cache=False)
 def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
                  feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
                  feat, margin, pred, quat_out, diag_out, pred_out):

@@ -59,8 +59,7 @@ __all__ = ["AquaFilter", "AquaSettings", "adaptive_gain", "scale_delta_quat"]
 class AquaSettings(FilterSettings):
     """Attributes (defaults: the TAGP over the 25 BROAD trials in shared/, 9D, 285.7 Hz, found on
     per-sample ᾱ × β̄ grids (0.00005..0.02 × 0.00002..0.01, coarse to fine, bias on/off)
-    and then on the bias thresholds: mean total RMSE 5.565°, heading 4.815°, inclination
-    2.595°; without the bias estimation the best of that grid is 10.1°. The time constants
+    and then on the bias thresholds; the bias estimation roughly halves the error there. The time constants
     below are those per-sample gains α at BROAD's 285.714 Hz, τ = −Ts/ln(1 − α), rounded):
 
         tau_acc: time constant [s] of the accelerometer correction; the static gain

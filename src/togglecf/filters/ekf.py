@@ -71,9 +71,9 @@ class EKFSettings(FilterSettings):
     """Noise parameters in MATLAB's units, here for rad/s, m/s² and µT. Defaults: the TAGP over
     the 25 BROAD trials in shared/ (9D, 285.7 Hz) of successive grids (gyro_noise 1e-6..0.1,
     linacc_noise 0.001..30, mag_disturbance_noise 0.5..500, mag_noise 0.1/1, linacc_decay
-    0.3..0.9, gyro_drift_noise 3e-13..1e-8, mag_ref_rate 0..1; ~190 points): mean total RMSE
-    4.590° (heading 4.002°, inclination 2.164°). MATLAB's noise defaults (in brackets) give 27.8°
-    here: they trust the accelerometer and magnetometer far too much for BROAD's motions.
+    0.3..0.9, gyro_drift_noise 3e-13..1e-8, mag_ref_rate 0..1; ~190 points). MATLAB's noise
+    defaults (in brackets) trust the accelerometer and magnetometer far too much for BROAD's
+    motions (several times the error there).
 
     Attributes:
         gyro_noise: η, gyroscope noise variance [(rad/s)²]. Default 0.02 (9.1385e-5).
@@ -89,7 +89,7 @@ class EKFSettings(FilterSettings):
         gravity: g [m/s²]. Default 9.81.
         mag_ref_rate: per-sample low-pass gain with which the reference field m_ref = [0, M_h,
             M_v] tracks the measured field in the earth frame, R⁺ y_m (0: keep the first
-            sample's). Default 0.005 (~0.7 s at 285.7 Hz; 0: 4.94°, 1: 4.76°). MATLAB re-sets
+            sample's). Default 0.005 (~0.7 s at 285.7 Hz; better than 0 or 1 there). MATLAB re-sets
             the reference from R⁺(y_m − d̂⁺) every sample; here that fed back into d̂ and shrank
             M_h towards 0 on BROAD, leaving the heading unobservable, hence this version.
     """

@@ -58,11 +58,11 @@ class MadgwickSettings(FilterSettings):
     """Attributes:
         beta: gradient-descent gain β [rad/s]. Default 0.08, the TAGP of the grid
             0.01..0.30 (step 0.01) over the 25 BROAD trials in shared/ (9D, report equations,
-            285.7 Hz): mean total RMSE 4.550° (heading 3.532°, inclination 2.644°). At β = 0.12
-            (BROAD's published TAGP, found with the C code) the mean total RMSE is 4.907°.
+            285.7 Hz). BROAD's published TAGP, β = 0.12, was found with the C code's magnetometer
+            step (``c_code_mag_step``).
         c_code_mag_step: use MadgwickAHRS.c's half-length magnetic reference (see module
             docstring). Default False (the report's eq. 46). With it the TAGP of the grid
-            0.02..0.20 (step 0.02) is β = 0.10: 4.873° (β = 0.12: 4.879°).
+            0.02..0.20 (step 0.02) is β = 0.10, next to BROAD's 0.12.
     """
 
     beta: float = 0.08

@@ -50,9 +50,8 @@ class MahonySettings(FilterSettings):
         Kp: proportional gain K_p [rad/s]. Default 0.7 (see Ki).
         Ki: integral gain K_i [rad/s²]. Default 0.0015. (Kp, Ki) is the TAGP over the 25
             BROAD trials in shared/ (9D, 285.7 Hz) of the grid Kp 0.1..1.6 × Ki 0..0.016
-            (70 points), refined on Kp 0.6..0.9 × Ki 0.001..0.003: mean total RMSE 8.080°
-            (heading 6.954°, inclination 3.751°). BROAD quotes K_p = 0.74, K_i = 0.0012
-            (8.15° here). Heading is Mahony's weak point: with unit vectors, a heading error
+            (70 points), refined on Kp 0.6..0.9 × Ki 0.001..0.003. BROAD quotes K_p = 0.74,
+            K_i = 0.0012 (close to it here). Heading is Mahony's weak point: with unit vectors, a heading error
             δψ gives ‖m̂ × v̂_m‖ ≈ cos²(dip)·δψ ≈ 0.15 δψ at BROAD's 67° dip, so the heading
             loop is ~6.5× slower than the tilt loop for the same K_p.
     """

@@ -97,8 +97,8 @@ class PrunePoint:
 #: The pruned point ``togglecf export --max-bytes N`` uses when no sweep exists: 10 trees of depth 4
 #: per booster (classifier and regressors), all features. Provenance: the 19-point pruning sweep of
 #: ``models/default`` (25 BROAD trials, 5 held-out folds, inner 3-fold CV; ``togglecf prune``) chose
-#: it for ``--max-bytes 32768``: 17.3 KiB of rv32imc array-format object code, held-out mean total
-#: RMSE 3.042° against 3.460° unpruned. It is not re-chosen per model: ``--full-sweep`` does that.
+#: it for ``--max-bytes 32768`` (the lowest held-out error within that budget; the sweep's table:
+#: ``docs/results/sweep.md``). It is not re-chosen per model: ``--full-sweep`` does that.
 DEFAULT_EXPORT_POINT = PrunePoint(10, 4, 10, 4, 0)
 
 #: The default point's sizes measured in that sweep [bytes] (17.3 KiB array, 58.5 KiB TL2cgen,

@@ -21,7 +21,7 @@ FILTERS = {
 
 
 def make_filter(name: str, fs: float, use_mag: bool = True, **settings) -> OrientationFilter:
-    """Construct a filter by its CLI name, e.g. ``make_filter('cf', 285.7, alpha=0.01)``."""
+    """Construct a filter by its CLI name, e.g. ``make_filter('cf', 285.7, tau=2.0)``."""
     try:
         cls = FILTERS[name]
     except KeyError:

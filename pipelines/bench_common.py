@@ -7,6 +7,8 @@ Not a benchmark itself. Each benchmark's ``main(argv)`` returns a dict with ``ro
 """
 from __future__ import annotations
 
+import importlib.util
+
 import math
 import os
 import platform
@@ -19,7 +21,7 @@ from togglecf import __version__
 from togglecf.report.tables import markdown_table, write_table
 
 REPO = Path(__file__).resolve().parents[1]
-#: 14-s cuts of three real BROAD trials, shipped with the tests (``tests/data/README.md``)
+#: 14-s cuts of three real BROAD trials, made from BROAD on first use (``tests/data/make_broad_mini.py``)
 MINI_DIR = REPO / "tests" / "data" / "broad_mini"
 #: where the full runs write their tables (the docs include ``<name>.md``)
 BENCH_DIR = REPO / "reports" / "bench"
@@ -39,7 +41,14 @@ def data_dir(args):
     """``--data``, else the mini directory in quick mode, else ``None`` (resolved as the CLI does)."""
     if args.data:
         return args.data
-    return str(MINI_DIR) if args.quick else None
+    if not args.quick:
+        return None
+    if not (MINI_DIR / "trials.json").is_file():  # cut from BROAD on first use (never committed)
+        spec = importlib.util.spec_from_file_location("make_broad_mini", MINI_DIR.parent / "make_broad_mini.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        module.ensure(MINI_DIR)
+    return str(MINI_DIR)
 
 
 def out_path(args, name: str):

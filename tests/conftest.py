@@ -1,10 +1,11 @@
 """Shared fixtures. Real-data tests are marked ``broad``: skipped with the reason when BROAD is
 absent, except when ``TOGGLECF_REQUIRE_DATA=1`` (set by .ci/run), where absence is an error.
 
-``mini_index`` is always there: 14-s cuts of three real BROAD trials shipped in
-``tests/data/broad_mini`` (CC BY 4.0, see ``tests/data/README.md``), for the tests of what the code
-does with real recordings that make no claim about the full dataset (models, export, C filter)."""
+``mini_index``: 14-s cuts of three real BROAD trials in ``tests/data/broad_mini`` (made from BROAD on
+first use, never committed; see ``tests/data/README.md``), for the tests of what the code does with
+real recordings that make no claim about the full dataset (models, export, C filter)."""
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,15 @@ if os.environ.get("CI"):
 from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
 
 REQUIRE_DATA = os.environ.get("TOGGLECF_REQUIRE_DATA") == "1"
-MINI_DIR = Path(__file__).resolve().parent / "data" / "broad_mini"
+sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
+from make_broad_mini import OUT as MINI_DIR  # noqa: E402  (tests/data/broad_mini, created from BROAD)
+from make_broad_mini import ensure as ensure_mini_data  # noqa: E402
+
+
+def _missing_data(exc):
+    if REQUIRE_DATA:
+        pytest.fail(f"TOGGLECF_REQUIRE_DATA=1 but BROAD is missing: {exc}")
+    pytest.skip(f"BROAD data not available: {exc}")
 
 
 @pytest.fixture(scope="session")
@@ -27,9 +36,7 @@ def broad_index():
     try:
         return DatasetIndex.from_dir(resolve_data_dir())
     except DataNotFoundError as exc:
-        if REQUIRE_DATA:
-            pytest.fail(f"TOGGLECF_REQUIRE_DATA=1 but BROAD is missing: {exc}")
-        pytest.skip(f"BROAD data not available: {exc}")
+        _missing_data(exc)
 
 
 @pytest.fixture(scope="session")
@@ -40,9 +47,13 @@ def broad_trial(broad_index):
 
 @pytest.fixture(scope="session")
 def mini_index():
-    """The shipped mini BROAD directory: 02, 07 and 24 (4000 samples = 14 s each: ~4 s rest,
-    then 10 s of movement; all four motion states occur). Never skipped."""
-    return DatasetIndex.from_dir(MINI_DIR)
+    """The mini BROAD directory ``tests/data/broad_mini``: 02, 07 and 24 (4000 samples = 14 s each:
+    ~4 s rest, then 10 s of movement; all four motion states occur), cut from the real trials on
+    first use (``tests/data/make_broad_mini.py``; BROAD's files are never in the repository)."""
+    try:
+        return DatasetIndex.from_dir(ensure_mini_data())
+    except DataNotFoundError as exc:
+        _missing_data(exc)
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,5 @@
 """Benchmarks that cannot rot: every ``pipelines/bench_*.py`` runs its ``--quick`` mode here (seconds,
-on the mini BROAD cuts in ``tests/data/broad_mini``), measures against VQF in the same run and writes
+on the mini BROAD cuts in ``tests/data/broad_mini``, made from BROAD on first use), measures against VQF in the same run and writes
 its table (Markdown + CSV) where ``--out`` says."""
 import csv
 import importlib
@@ -34,7 +34,7 @@ def test_every_benchmark_is_run_here():
 
 
 @pytest.mark.parametrize("name", sorted(BENCHES))
-def test_quick_mode_runs_and_writes_its_table(name, tmp_path, capsys):
+def test_quick_mode_runs_and_writes_its_table(name, tmp_path, capsys, mini_index):
     if name == "bench_dask":
         pytest.importorskip("distributed")
     extra, ratio_names = BENCHES[name]
@@ -54,7 +54,7 @@ def test_quick_mode_runs_and_writes_its_table(name, tmp_path, capsys):
     assert "ratio_to_vqf" in out  # the table is printed too
 
 
-def test_quick_mode_without_out_writes_nothing(tmp_path, monkeypatch):
+def test_quick_mode_without_out_writes_nothing(tmp_path, monkeypatch, mini_index):
     mod = _load("bench_vqf_core")
     monkeypatch.setattr(sys.modules["bench_common"], "BENCH_DIR", tmp_path / "reports")
     res = mod.main(["--quick", "--repeats", "1"])

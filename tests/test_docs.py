@@ -6,7 +6,7 @@
   are not installed; CI installs the ``dev`` extra, which has them, so there it runs.
 * Every fenced ``python`` block of ``docs/**/*.md`` and ``README.md`` is executed by
   ``test_python_block`` (in a temporary working directory, with ``TOGGLECF_DATA`` pointing at the
-  shipped mini BROAD cuts ``tests/data/broad_mini`` and ``models/default`` holding tiny models
+  mini BROAD cuts ``tests/data/broad_mini`` (made from BROAD by ``tests/conftest.py``) and ``models/default`` holding tiny models
   trained on them with fixed gains), unless its first line is ``# not run: <reason>``.
   ``test_blocks_are_run_or_say_why`` fails on a marker without a reason and on python code fenced
   under another name, so no example escapes unnoticed.
@@ -109,7 +109,7 @@ def docs_workdir(tmp_path_factory, tiny_model_dir):
 
 
 @pytest.mark.parametrize("rel,line,code", RUN_BLOCKS, ids=[f"{r}:{n}" for r, n, _ in RUN_BLOCKS])
-def test_python_block(rel, line, code, docs_workdir, monkeypatch):
+def test_python_block(rel, line, code, docs_workdir, mini_index, monkeypatch):
     monkeypatch.setenv("TOGGLECF_DATA", str(MINI_DIR))
     monkeypatch.setenv("TOGGLECF_PROGRESS", "0")
     monkeypatch.chdir(docs_workdir)

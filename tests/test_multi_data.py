@@ -14,6 +14,11 @@ from togglecf.data.broad import DataError, DatasetIndex, MultiIndex, load_trial,
 from togglecf.learn.labels import make_targets
 from togglecf.parallel.backend import data_location, load_trial_cached
 
+@pytest.fixture(autouse=True)
+def _mini_data(mini_index):
+    """Every test here reads the mini directory (created from BROAD on first use)."""
+
+
 MINI_NAMES = ["02_undisturbed_slow_rotation_B", "07_undisturbed_fast_rotation_B", "24_disturbed_tapping_A"]
 
 

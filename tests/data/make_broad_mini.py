@@ -1,6 +1,9 @@
-"""Re-create ``tests/data/broad_mini/`` from the real BROAD trials (see README.md beside this file).
+"""Create ``tests/data/broad_mini/`` from the real BROAD trials (see README.md beside this file).
 
-    python tests/data/make_broad_mini.py [BROAD_DIR]      # default ../shared/data/broad
+    python tests/data/make_broad_mini.py [BROAD_DIR]      # default: as ``togglecf evaluate`` finds BROAD
+
+The directory is *not* part of the repository (BROAD's files live in ``../shared`` only): the test
+suite (``tests/conftest.py``) and the benchmarks' quick modes create it on first use with ``ensure``.
 
 Each mini trial is one contiguous cut ``[start, stop)`` (sample indices of the original trial, at
 285.714 Hz) of a real BROAD trial: about 4 s of the rest before the movement starts (the filters
@@ -20,6 +23,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from togglecf.data.broad import resolve_data_dir
+
 #: trial -> (start, stop): samples of the original file. Movement starts at sample 11449 (02),
 #: 7573 (07) and 12802 (24); each cut starts ~4 s before it and is 4000 samples (14.0 s) long.
 CUTS = {
@@ -29,6 +34,19 @@ CUTS = {
 }
 FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "opt_pos", "movement")
 OUT = Path(__file__).resolve().parent / "broad_mini"
+
+
+def ensure(out: Path = OUT) -> Path:
+    """``out`` holding the mini trials, cut from the BROAD directory that ``resolve_data_dir`` finds
+    when not there yet (written to a sibling first, then renamed: never half-written). Raises
+    ``DataNotFoundError`` when BROAD is nowhere to be found."""
+    out = Path(out)
+    if (out / "trials.json").is_file():
+        return out
+    tmp = out.with_name(out.name + ".partial")
+    make(resolve_data_dir(), tmp)
+    tmp.rename(out)
+    return out
 
 
 def make(src: Path, out: Path = OUT) -> None:
@@ -53,4 +71,4 @@ def make(src: Path, out: Path = OUT) -> None:
 
 
 if __name__ == "__main__":
-    make(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[3] / "shared" / "data" / "broad")
+    make(Path(sys.argv[1]) if len(sys.argv) > 1 else resolve_data_dir())

@@ -51,7 +51,7 @@ from togglecf.toggling.load import load_toggling_filter
 __all__ = ["export_c_filter", "build_harness", "run_harness", "harness_features", "TEMPLATES", "HARNESS_CFLAGS",
            "state_bytes_formula"]
 
-TEMPLATES = ("tcf_filter.h", "tcf_filter.c", "tcf_harness.c")
+TEMPLATES = ("tcf_filter.h", "tcf_filter.c", "tcf_harness.c", "tcf_csv.h")
 FILTER_SOURCES = ("tcf_filter.c", "tcf_forest.c")
 HARNESS_CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic")
 #: the channel layout tcf_filter.c was written for (it hard-codes the ring columns)
@@ -144,7 +144,7 @@ _MAKEFILE = """# Host build of the exported toggling filter (see tcf_filter.h). 
 CC ?= gcc
 CFLAGS ?= {cflags}
 
-tcf_harness: tcf_harness.c tcf_filter.c tcf_forest.c tcf_filter.h tcf_forest.h tcf_config.h
+tcf_harness: tcf_harness.c tcf_csv.h tcf_filter.c tcf_forest.c tcf_filter.h tcf_forest.h tcf_config.h
 \t$(CC) $(CFLAGS) -o $@ tcf_harness.c tcf_filter.c tcf_forest.c -lm
 
 clean:
@@ -287,7 +287,7 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     executable (default ``out_dir/tcf_harness``). Raises ``RuntimeError`` with gcc's output."""
     out_dir = Path(out_dir)
     gcc = need_gcc("building the C filter's harness")
-    missing = [f for f in ("tcf_harness.c", *FILTER_SOURCES, "tcf_filter.h", "tcf_forest.h", "tcf_config.h")
+    missing = [f for f in ("tcf_harness.c", "tcf_csv.h", *FILTER_SOURCES, "tcf_filter.h", "tcf_forest.h", "tcf_config.h")
                if not (out_dir / f).is_file()]
     if missing:
         raise FileNotFoundError(f"{out_dir}: missing {', '.join(missing)} (run export_c_filter first)")

@@ -62,7 +62,7 @@ from togglecf.filters.vqf_core import VQFCoreSettings
 __all__ = ["export_c_vqf", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES",
            "measure_vqf_state_bytes", "DIAG_NAMES"]
 
-VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c")
+VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c", "tcf_csv.h")
 VQF_SOURCES = ("tcf_vqf.c",)
 #: columns of ``tcf_vqf_harness --diag`` after w,x,y,z (= VQFCoreFilter.diagnostic_names)
 DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
@@ -74,7 +74,7 @@ _MAKEFILE = """# Host build of the exported VQF core (see tcf_vqf.h). For a firm
 CC ?= gcc
 CFLAGS ?= {cflags}
 
-tcf_vqf_harness: tcf_vqf_harness.c tcf_vqf.c tcf_vqf.h tcf_vqf_config.h
+tcf_vqf_harness: tcf_vqf_harness.c tcf_csv.h tcf_vqf.c tcf_vqf.h tcf_vqf_config.h
 \t$(CC) $(CFLAGS) -o $@ tcf_vqf_harness.c tcf_vqf.c -lm
 
 clean:

@@ -27,53 +27,13 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+#include "tcf_csv.h"
 #include "tcf_filter.h"
 
 #define LINE_MAX_CHARS 8192
 #define N_DIAG (TCF_N_PRED + 2)
 
 static const char *class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
-
-static int fail(const char *path, long line, const char *msg, const char *detail) {
-  if (line > 0)
-    fprintf(stderr, "tcf_harness: %s:%ld: %s%s%s\n", path, line, msg, detail ? " " : "", detail ? detail : "");
-  else
-    fprintf(stderr, "tcf_harness: %s: %s%s%s\n", path, msg, detail ? " " : "", detail ? detail : "");
-  return 1;
-}
-
-static int count_fields(const char *s) {
-  int n = 1;
-  for (; *s; ++s)
-    if (*s == ',') ++n;
-  return n;
-}
-
-static void strip_eol(char *s) {
-  size_t n = strlen(s);
-  while (n > 0 && (s[n - 1] == '\n' || s[n - 1] == '\r')) s[--n] = '\0';
-}
-
-/* parse one field [b, e): empty -> NaN; returns 0 if it is not a number */
-static int parse_field(const char *b, const char *e, float *out) {
-  char buf[128], *end;
-  size_t n;
-  double v;
-  while (b < e && (*b == ' ' || *b == '\t')) ++b;
-  while (e > b && (e[-1] == ' ' || e[-1] == '\t')) --e;
-  n = (size_t)(e - b);
-  if (n == 0) {
-    *out = NAN;
-    return 1;
-  }
-  if (n >= sizeof buf) return 0;
-  memcpy(buf, b, n);
-  buf[n] = '\0';
-  v = strtod(buf, &end);
-  if (*end != '\0') return 0;
-  *out = (float)v;
-  return 1;
-}
 
 /* Read a CSV file with a header line whose column count is one of allowed[0..n_allowed-1]
    into *rows (stride = the largest allowed count; missing columns are 0). Returns 0 on
@@ -85,13 +45,13 @@ static int read_csv(const char *path, const int *allowed, int n_allowed, const c
   int stride = 0, i, k, ok = 0;
   float *x = NULL;
   FILE *fin = fopen(path, "r");
-  if (!fin) return fail(path, 0, "cannot open:", strerror(errno));
+  if (!fin) return tcf_csv_fail("tcf_harness", path, 0, "cannot open:", strerror(errno));
   if (!fgets(line, sizeof line, fin)) {
     fclose(fin);
-    return fail(path, 0, "empty file: expected a header line such as", expected);
+    return tcf_csv_fail("tcf_harness", path, 0, "empty file: expected a header line such as", expected);
   }
-  strip_eol(line);
-  *n_cols = count_fields(line);
+  tcf_csv_strip_eol(line);
+  *n_cols = tcf_csv_count_fields(line);
   for (i = 0; i < n_allowed; ++i) {
     if (allowed[i] == *n_cols) ok = 1;
     if (allowed[i] > stride) stride = allowed[i];
@@ -100,7 +60,7 @@ static int read_csv(const char *path, const int *allowed, int n_allowed, const c
     char msg[160];
     sprintf(msg, "header has %d columns, expected %s; header:", *n_cols, expected);
     fclose(fin);
-    return fail(path, 1, msg, line);
+    return tcf_csv_fail("tcf_harness", path, 1, msg, line);
   }
   while (fgets(line, sizeof line, fin)) {
     const char *b;
@@ -109,16 +69,16 @@ static int read_csv(const char *path, const int *allowed, int n_allowed, const c
     if (strchr(line, '\n') == NULL && !feof(fin)) {
       fclose(fin);
       free(x);
-      return fail(path, lineno, "line too long", NULL);
+      return tcf_csv_fail("tcf_harness", path, lineno, "line too long", NULL);
     }
-    strip_eol(line);
+    tcf_csv_strip_eol(line);
     if (line[0] == '\0') continue;  /* blank lines (e.g. at the end) */
-    if (count_fields(line) != *n_cols) {
+    if (tcf_csv_count_fields(line) != *n_cols) {
       char msg[64];
-      sprintf(msg, "expected %d fields, got %d:", *n_cols, count_fields(line));
+      sprintf(msg, "expected %d fields, got %d:", *n_cols, tcf_csv_count_fields(line));
       fclose(fin);
       free(x);
-      return fail(path, lineno, msg, line);
+      return tcf_csv_fail("tcf_harness", path, lineno, msg, line);
     }
     if (n == cap) {
       float *grown;
@@ -127,7 +87,7 @@ static int read_csv(const char *path, const int *allowed, int n_allowed, const c
       if (!grown) {
         fclose(fin);
         free(x);
-        return fail(path, lineno, "out of memory", NULL);
+        return tcf_csv_fail("tcf_harness", path, lineno, "out of memory", NULL);
       }
       x = grown;
     }
@@ -136,12 +96,12 @@ static int read_csv(const char *path, const int *allowed, int n_allowed, const c
     for (k = 0; k < *n_cols; ++k) {
       const char *e = strchr(b, ',');
       if (!e) e = b + strlen(b);
-      if (!parse_field(b, e, row + k)) {
+      if (!tcf_csv_parse_field(b, e, row + k)) {
         char msg[64];
         sprintf(msg, "column %d is not a number:", k + 1);
         fclose(fin);
         free(x);
-        return fail(path, lineno, msg, line);
+        return tcf_csv_fail("tcf_harness", path, lineno, msg, line);
       }
       b = *e ? e + 1 : e;
     }
@@ -201,20 +161,20 @@ int main(int argc, char **argv) {
       char msg[96];
       sprintf(msg, "has %ld prediction rows for %ld samples", n_pred, n);
       free(x); free(px);
-      return fail(pred_path, 0, msg, NULL);
+      return tcf_csv_fail("tcf_harness", pred_path, 0, msg, NULL);
     }
   }
   qo = (float *)malloc(sizeof(float) * 4 * (size_t)(n ? n : 1));
   dg = (float *)malloc(sizeof(float) * N_DIAG * (size_t)(n ? n : 1));
   if (!qo || !dg) {
     free(x); free(px); free(qo); free(dg);
-    return fail(in_path, 0, "out of memory", NULL);
+    return tcf_csv_fail("tcf_harness", in_path, 0, "out of memory", NULL);
   }
   if (feat_path) {
     ffeat = fopen(feat_path, "w");
     if (!ffeat) {
       free(x); free(px); free(qo); free(dg);
-      return fail(feat_path, 0, "cannot write:", strerror(errno));
+      return tcf_csv_fail("tcf_harness", feat_path, 0, "cannot write:", strerror(errno));
     }
   }
 
@@ -247,13 +207,13 @@ int main(int argc, char **argv) {
             n ? 1e9 * (double)(t1 - t0) / CLOCKS_PER_SEC / (double)n : 0.0, (unsigned)sizeof(tcf_filter_t));
   if (ffeat && fclose(ffeat) != 0) {
     free(x); free(px); free(qo); free(dg);
-    return fail(feat_path, 0, "write failed:", strerror(errno));
+    return tcf_csv_fail("tcf_harness", feat_path, 0, "write failed:", strerror(errno));
   }
 
   fout = fopen(out_path, "w");
   if (!fout) {
     free(x); free(px); free(qo); free(dg);
-    return fail(out_path, 0, "cannot write:", strerror(errno));
+    return tcf_csv_fail("tcf_harness", out_path, 0, "cannot write:", strerror(errno));
   }
   fputs("w,x,y,z", fout);
   if (diag) {
@@ -269,6 +229,6 @@ int main(int argc, char **argv) {
     fputc('\n', fout);
   }
   free(x); free(px); free(qo); free(dg);
-  if (fclose(fout) != 0) return fail(out_path, 0, "write failed:", strerror(errno));
+  if (fclose(fout) != 0) return tcf_csv_fail("tcf_harness", out_path, 0, "write failed:", strerror(errno));
   return 0;
 }

@@ -24,50 +24,13 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+#include "tcf_csv.h"
 #include "tcf_vqf.h"
 #include "tcf_vqf_config.h"
 
 #define LINE_MAX_CHARS 4096
 #define MAX_COLS 10
 #define N_DIAG 8
-
-static int fail(const char *path, long line, const char *msg, const char *detail) {
-  if (line > 0)
-    fprintf(stderr, "tcf_vqf_harness: %s:%ld: %s%s%s\n", path, line, msg, detail ? " " : "", detail ? detail : "");
-  else
-    fprintf(stderr, "tcf_vqf_harness: %s: %s%s%s\n", path, msg, detail ? " " : "", detail ? detail : "");
-  return 1;
-}
-
-static void strip_eol(char *s) {
-  size_t n = strlen(s);
-  while (n > 0 && (s[n - 1] == '\n' || s[n - 1] == '\r')) s[--n] = '\0';
-}
-
-static int count_fields(const char *s) {
-  int n = 1;
-  for (; *s; ++s)
-    if (*s == ',') ++n;
-  return n;
-}
-
-/* one field [b, e): empty -> NaN; 0 if it is not a number */
-static int parse_field(const char *b, const char *e, float *out) {
-  char buf[128], *end;
-  size_t n;
-  while (b < e && (*b == ' ' || *b == '\t')) ++b;
-  while (e > b && (e[-1] == ' ' || e[-1] == '\t')) --e;
-  n = (size_t)(e - b);
-  if (n == 0) {
-    *out = NAN;
-    return 1;
-  }
-  if (n >= sizeof buf) return 0;
-  memcpy(buf, b, n);
-  buf[n] = '\0';
-  *out = (float)strtod(buf, &end);
-  return *end == '\0';
-}
 
 /* rows of MAX_COLS floats: gyr, acc, mag (0 when absent), dt (NaN when absent) */
 static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_mag, int *has_dt) {
@@ -77,14 +40,14 @@ static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_m
   float *x = NULL;
   const char *last;
   FILE *fin = fopen(path, "r");
-  if (!fin) return fail(path, 0, "cannot open:", strerror(errno));
+  if (!fin) return tcf_csv_fail("tcf_vqf_harness", path, 0, "cannot open:", strerror(errno));
   if (!fgets(line, sizeof line, fin)) {
     fclose(fin);
-    return fail(path, 0, "empty file: expected a header line such as", "gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,"
+    return tcf_csv_fail("tcf_vqf_harness", path, 0, "empty file: expected a header line such as", "gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,"
                 "mag_y,mag_z][,dt]");
   }
-  strip_eol(line);
-  n_cols = count_fields(line);
+  tcf_csv_strip_eol(line);
+  n_cols = tcf_csv_count_fields(line);
   last = strrchr(line, ',');
   last = last ? last + 1 : line;
   while (*last == ' ') ++last;
@@ -92,7 +55,7 @@ static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_m
   *has_mag = n_cols - *has_dt == 9;
   if (n_cols - *has_dt != 6 && n_cols - *has_dt != 9) {
     fclose(fin);
-    return fail(path, 1, "expected 6 (gyr, acc) or 9 (gyr, acc, mag) columns, optionally + dt; header:", line);
+    return tcf_csv_fail("tcf_vqf_harness", path, 1, "expected 6 (gyr, acc) or 9 (gyr, acc, mag) columns, optionally + dt; header:", line);
   }
   while (fgets(line, sizeof line, fin)) {
     const char *b;
@@ -101,23 +64,23 @@ static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_m
     if (strchr(line, '\n') == NULL && !feof(fin)) {
       fclose(fin);
       free(x);
-      return fail(path, lineno, "line too long", NULL);
+      return tcf_csv_fail("tcf_vqf_harness", path, lineno, "line too long", NULL);
     }
-    strip_eol(line);
+    tcf_csv_strip_eol(line);
     if (line[0] == '\0') continue;
-    if (count_fields(line) != n_cols) {
+    if (tcf_csv_count_fields(line) != n_cols) {
       fclose(fin);
       free(x);
-      return fail(path, lineno, "wrong number of fields:", line);
+      return tcf_csv_fail("tcf_vqf_harness", path, lineno, "wrong number of fields:", line);
     }
     b = line;
     for (k = 0; k < n_cols; ++k) {
       const char *e = strchr(b, ',');
       if (!e) e = b + strlen(b);
-      if (!parse_field(b, e, v + k)) {
+      if (!tcf_csv_parse_field(b, e, v + k)) {
         fclose(fin);
         free(x);
-        return fail(path, lineno, "a field is not a number:", line);
+        return tcf_csv_fail("tcf_vqf_harness", path, lineno, "a field is not a number:", line);
       }
       b = *e ? e + 1 : e;
     }
@@ -128,7 +91,7 @@ static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_m
       if (!grown) {
         fclose(fin);
         free(x);
-        return fail(path, lineno, "out of memory", NULL);
+        return tcf_csv_fail("tcf_vqf_harness", path, lineno, "out of memory", NULL);
       }
       x = grown;
     }
@@ -187,7 +150,7 @@ int main(int argc, char **argv) {
   dg = (float *)malloc(sizeof(float) * N_DIAG * (size_t)(n ? n : 1));
   if (!qo || !dg) {
     free(x); free(qo); free(dg);
-    return fail(in_path, 0, "out of memory", NULL);
+    return tcf_csv_fail("tcf_vqf_harness", in_path, 0, "out of memory", NULL);
   }
 
   t0 = clock();
@@ -215,7 +178,7 @@ int main(int argc, char **argv) {
   fout = fopen(out_path, "w");
   if (!fout) {
     free(x); free(qo); free(dg);
-    return fail(out_path, 0, "cannot write:", strerror(errno));
+    return tcf_csv_fail("tcf_vqf_harness", out_path, 0, "cannot write:", strerror(errno));
   }
   fputs(diag ? "w,x,y,z,rest,mag_dist,bias_x,bias_y,bias_z,bias_sigma,delta,k_mag\n" : "w,x,y,z\n", fout);
   for (s = 0; s < n; ++s) {
@@ -226,6 +189,6 @@ int main(int argc, char **argv) {
     fputc('\n', fout);
   }
   free(x); free(qo); free(dg);
-  if (fclose(fout) != 0) return fail(out_path, 0, "write failed:", strerror(errno));
+  if (fclose(fout) != 0) return tcf_csv_fail("tcf_vqf_harness", out_path, 0, "write failed:", strerror(errno));
   return 0;
 }

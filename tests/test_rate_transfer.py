@@ -34,9 +34,8 @@ def _states(models, gyr, acc, mag, fs):
 def test_classifier_predicts_the_same_state_at_a_third_of_the_rate(broad_index, mini_index, decimate, tmp_path):
     """Tiny models trained at 285.7 Hz on the mini trials; trial 05 (not among them) at its rate and
     every 3 samples averaged: the held state agrees on >= 90 % of the decimated samples (the
-    issue's bar; measured 92.9 % with these tiny models, 98.3 % with the default models trained
-    on all 25 trials, both deterministic for the seed; the misses sit at state changes, where
-    the two rates' windows end 1-2 native samples apart)."""
+    issue's bar; 92.9 % with these tiny models, deterministic for the seed; the misses sit at
+    state changes, where the two rates' windows end 1-2 native samples apart)."""
     models = load_compiled_models(train_tiny_models(mini_index.root, "02,07,24", tmp_path / "m"))
     t = broad_index.load("05_undisturbed_slow_rotation_with_breaks_B")
     d = decimate.decimate_trial(t, 3)

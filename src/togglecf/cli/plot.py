@@ -45,20 +45,20 @@ def _estimates(args, trial) -> dict:
     return {n: _estimate(trial, n, args.models, not args.six_d) for n in names}
 
 
-def cmd_plot_euler(args):
+def _plot_filters(args, figure):
+    """``figure(trial, estimates, out=, t_range=)`` of the trial and filters the options name."""
     trial = _load_trial(args)
-    est = _estimates(args, trial)
     t_range = (args.start, args.end if args.end is not None else trial.duration)
-    plot_euler(trial, est, out=args.out, t_range=t_range)
+    figure(trial, _estimates(args, trial), out=args.out, t_range=t_range)
     print(f"wrote {args.out}", file=sys.stderr)
+
+
+def cmd_plot_euler(args):
+    _plot_filters(args, plot_euler)
 
 
 def cmd_plot_error(args):
-    trial = _load_trial(args)
-    est = _estimates(args, trial)
-    t_range = (args.start, args.end if args.end is not None else trial.duration)
-    plot_error(trial, est, out=args.out, t_range=t_range)
-    print(f"wrote {args.out}", file=sys.stderr)
+    _plot_filters(args, plot_error)
 
 
 def cmd_plot_3d(args):

@@ -41,6 +41,7 @@ from togglecf.embedded.toolchain import (
     measure_sizes,
     need_gcc,
     run_harness_command,
+    run_host_program,
     template,
     write_imu_csv,
 )
@@ -186,18 +187,9 @@ def _check_feature_layout():
 
 
 def _measure_state_bytes(out_dir: Path) -> tuple[int, int]:
-    gcc = need_gcc("measuring sizeof(tcf_filter_t)")
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp) / "size.c"
-        src.write_text(_SIZE_MAIN)
-        exe = Path(tmp) / "size"
-        res = subprocess.run([gcc, "-std=c99", "-o", str(exe), str(src), f"-I{out_dir}"], capture_output=True,
-                             text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"compiling the state-size probe against {out_dir}/tcf_filter.h failed:\n{res.stderr}")
-        size, documented = (int(v) for v in subprocess.run([str(exe)], capture_output=True, text=True,
-                                                           check=True).stdout.split())
-    return size, documented
+    """``sizeof(tcf_filter_t)`` and the documented ``TCF_STATE_BYTES`` (host gcc)."""
+    size, documented = run_host_program(_SIZE_MAIN, [out_dir], "measuring sizeof(tcf_filter_t)").split()
+    return int(size), int(documented)
 
 
 def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:

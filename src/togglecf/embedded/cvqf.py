@@ -54,6 +54,7 @@ from togglecf.embedded.toolchain import (
     riscv_flags,
     run_command,
     run_harness_command,
+    run_host_program,
     template,
     write_imu_csv,
 )
@@ -160,12 +161,7 @@ def _config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
 
 def measure_vqf_state_bytes(out_dir) -> int:
     """``sizeof(tcf_vqf_t)`` with the host gcc (all members are 4 bytes: the same on rv32/ARM)."""
-    gcc = need_gcc("measuring sizeof(tcf_vqf_t)")
-    with tempfile.TemporaryDirectory() as tmp:
-        src, exe = Path(tmp) / "size.c", Path(tmp) / "size"
-        src.write_text(_SIZE_MAIN)
-        run_command([gcc, "-std=c99", "-o", exe, src, f"-I{out_dir}"])
-        return int(run_command([exe]).strip())
+    return int(run_host_program(_SIZE_MAIN, [out_dir], "measuring sizeof(tcf_vqf_t)").strip())
 
 
 def _link_arm(out_dir: Path) -> dict | None:

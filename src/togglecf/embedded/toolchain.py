@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
-           "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
+           "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
            "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv"]
 
 RISCV_GCC = "riscv64-unknown-elf-gcc"
@@ -254,3 +254,18 @@ def write_imu_csv(path, gyr, acc, mag=None, dt=None, float32: bool = False) -> i
     else:
         np.savetxt(path, data, fmt="%.17g", delimiter=",", header=",".join(names), comments="")
     return n
+
+
+def run_host_program(source: str, include_dirs, what: str) -> str:
+    """Compile the C program ``source`` with the host gcc against ``include_dirs``, run it and return
+    what it prints (probes such as ``sizeof`` of an exported state); errors name ``what``."""
+    gcc = need_gcc(what)
+    with tempfile.TemporaryDirectory() as tmp:
+        src, exe = Path(tmp) / "probe.c", Path(tmp) / "probe"
+        src.write_text(source)
+        res = subprocess.run([gcc, "-std=c99", "-o", str(exe), str(src), *[f"-I{d}" for d in include_dirs]],
+                             capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"{what}: compiling the probe against {', '.join(map(str, include_dirs))} failed:\n"
+                               f"{res.stderr}")
+        return run_command([exe])

@@ -12,6 +12,7 @@ import importlib.util
 import math
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -21,34 +22,39 @@ from togglecf import __version__
 from togglecf.report.tables import markdown_table, write_table
 
 REPO = Path(__file__).resolve().parents[1]
-#: 14-s cuts of three real BROAD trials, made from BROAD on first use (``tests/data/make_broad_mini.py``)
-MINI_DIR = REPO / "tests" / "data" / "broad_mini"
+#: where the mini data's makers live: 14-s cuts of three real BROAD trials (``broad_mini``, made from
+#: BROAD on first use) or, without BROAD, three synthetic trials (``synthetic_mini``); ``mini_data.py``
+#: chooses, as for the test suite (``TOGGLECF_MINI``)
+MINI_DATA_DIR = REPO / "tests" / "data"
 #: where the full runs write their tables (the docs include ``<name>.md``)
 BENCH_DIR = REPO / "reports" / "bench"
 
 
 def add_common_args(p, name: str):
     p.add_argument("--quick", action="store_true",
-                   help="seconds, on the mini data in tests/data/broad_mini (the test suite runs this); "
+                   help="seconds, on the mini data in tests/data (the real cuts broad_mini, or synthetic_mini "
+                   "without BROAD; the test suite runs this); "
                    "writes a table only with --out")
     p.add_argument("--data", metavar="DIR", default=None,
-                   help="BROAD directory (default: as `togglecf evaluate`; --quick: tests/data/broad_mini)")
+                   help="BROAD directory (default: as `togglecf evaluate`; --quick: the mini data)")
     p.add_argument("--out", metavar="PATH", default=None,
                    help=f"table file: PATH.md and PATH.csv (default: reports/bench/{name}.md/.csv for a full run)")
 
 
 def data_dir(args):
-    """``--data``, else the mini directory in quick mode, else ``None`` (resolved as the CLI does)."""
+    """``--data``, else the mini directory in quick mode (the real cuts, or the synthetic trials without
+    BROAD: ``tests/data/mini_data.py``), else ``None`` (resolved as the CLI does)."""
     if args.data:
         return args.data
     if not args.quick:
         return None
-    if not (MINI_DIR / "trials.json").is_file():  # cut from BROAD on first use (never committed)
-        spec = importlib.util.spec_from_file_location("make_broad_mini", MINI_DIR.parent / "make_broad_mini.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        module.ensure(MINI_DIR)
-    return str(MINI_DIR)
+    spec = importlib.util.spec_from_file_location("mini_data", MINI_DATA_DIR / "mini_data.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    kind, root = module.mini_dir()  # made on first use (never committed)
+    if kind != "broad":
+        print(f"--quick: no BROAD, on the synthetic mini data in {root}", file=sys.stderr)
+    return str(root)
 
 
 def out_path(args, name: str):

@@ -7,7 +7,7 @@ Data: the first five BROAD trials present, concatenated (``--trials`` chooses ot
 ``--synthetic`` or without BROAD, a random 1,000,000-sample recording. Reported: µs per sample and
 samples/s (best of ``--repeats``, interleaved with ``vqf.VQF.updateBatch`` on the same arrays, after
 a warm-up) and the ratio features ÷ VQF. Full run: table in ``reports/bench/bench_features.md``/``.csv``.
-``--quick``: the three mini trials in ``tests/data/broad_mini`` (12 000 samples), 2 repeats.
+``--quick``: the three mini trials (``tests/data/broad_mini``, or ``synthetic_mini`` without BROAD; 12 000 samples), 2 repeats.
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ update, measured in the same run on the same BROAD trial (best of --repeats, int
 Needs a trained model directory (`togglecf train --out models/default`) and the dev extra `vqf`.
 Full run: table in ``reports/bench/bench_toggling.md``/``.csv``. ``--quick`` (without
 ``--models``): tiny models (15 + 10 trees of depth 4, default gains) trained in seconds on the
-mini data in ``tests/data/broad_mini``, timed on its trial 24 (4000 samples), 2 repeats.
+mini data (``tests/data/broad_mini``, or ``synthetic_mini`` without BROAD), timed on its trial 24 (4000 samples), 2 repeats.
 """
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ from togglecf.filters.vqf_core import VQFCoreFilter
 
 NAME = "bench_vqf_core"
 DEFAULT_TRIAL = "21_undisturbed_fast_combined"
-QUICK_TRIAL = "07"  # in tests/data/broad_mini (fast rotation)
+QUICK_TRIAL = "07"  # in the mini data (fast rotation; tests/data/broad_mini or synthetic_mini)
 
 
 def main(argv=None) -> dict:

@@ -1,9 +1,13 @@
 """Shared fixtures. Real-data tests are marked ``broad``: skipped with the reason when BROAD is
 absent, except when ``TOGGLECF_REQUIRE_DATA=1`` (set by .ci/run), where absence is an error.
 
-``mini_index``: 14-s cuts of three real BROAD trials in ``tests/data/broad_mini`` (made from BROAD on
-first use, never committed; see ``tests/data/README.md``), for the tests of what the code does with
-real recordings that make no claim about the full dataset (models, export, C filter)."""
+``mini_index``: three short trials (02, 07, 24; 4000 samples each) for the tests of what the code does
+with trials that make no claim about the full dataset (models, export, C filter): the 14-s cuts of
+real BROAD trials in ``tests/data/broad_mini`` when BROAD is found (made on first use, never
+committed), otherwise synthetic trials in BROAD's layout in ``tests/data/synthetic_mini``
+(``TOGGLECF_MINI=synthetic`` forces them; see ``tests/data/README.md`` and ``tests/data/mini_data.py``).
+``mini_kind`` says which ("broad" or "synthetic"): an assertion about a number measured on the real
+recordings holds only for "broad"."""
 import os
 import sys
 from pathlib import Path
@@ -21,8 +25,7 @@ from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_di
 
 REQUIRE_DATA = os.environ.get("TOGGLECF_REQUIRE_DATA") == "1"
 sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
-from make_broad_mini import OUT as MINI_DIR  # noqa: E402  (tests/data/broad_mini, created from BROAD)
-from make_broad_mini import ensure as ensure_mini_data  # noqa: E402
+from mini_data import mini_dir  # noqa: E402  (tests/data/broad_mini from BROAD, or tests/data/synthetic_mini)
 
 
 def _missing_data(exc):
@@ -45,22 +48,55 @@ def broad_trial(broad_index):
     return broad_index.load("05_undisturbed_slow_rotation_with_breaks_B")
 
 
+_MINI = {}
+
+
+def _mini():
+    """``(kind, DatasetIndex)`` of the mini directory (chosen once per session, ``mini_data.mini_dir``)."""
+    if not _MINI:
+        try:
+            kind, root = mini_dir()
+        except DataNotFoundError as exc:
+            _missing_data(exc)
+        _MINI.update(kind=kind, index=DatasetIndex.from_dir(root))
+    return _MINI["kind"], _MINI["index"]
+
+
 @pytest.fixture(scope="session")
 def mini_index():
-    """The mini BROAD directory ``tests/data/broad_mini``: 02, 07 and 24 (4000 samples = 14 s each:
-    ~4 s rest, then 10 s of movement; all four motion states occur), cut from the real trials on
-    first use (``tests/data/make_broad_mini.py``; BROAD's files are never in the repository)."""
-    try:
-        return DatasetIndex.from_dir(ensure_mini_data())
-    except DataNotFoundError as exc:
-        _missing_data(exc)
+    """The mini directory: 02, 07 and 24, 4000 samples = 14 s each (~4 s rest, then 10 s of
+    movement; all four motion states occur in every pair). The real cuts (``tests/data/broad_mini``,
+    from BROAD on first use; BROAD's files are never in the repository) when BROAD is found, else
+    the synthetic trials (``tests/data/synthetic_mini``); ``mini_kind`` says which."""
+    return _mini()[1]
+
+
+@pytest.fixture(scope="session")
+def mini_kind(mini_index):
+    """``"broad"`` (real cuts) or ``"synthetic"`` (simulator output): which data ``mini_index`` holds."""
+    return _mini()[0]
+
+
+def mini_name(index, prefix: str) -> str:
+    """The one trial of ``index`` whose name starts with ``prefix`` (``"24"`` or ``"24_"``)."""
+    prefix = prefix if prefix.endswith("_") else prefix + "_"
+    hits = [n for n in index.available if n.startswith(prefix)]
+    assert len(hits) == 1, (prefix, list(index.available))
+    return hits[0]
+
+
+@pytest.fixture(scope="session")
+def mini_names(mini_index):
+    """The names of the three mini trials in the order 02, 07, 24."""
+    return [mini_name(mini_index, p) for p in ("02", "07", "24")]
 
 
 @pytest.fixture(scope="session")
 def mini_trial(mini_index):
-    """One short real trial: 24_disturbed_tapping_A (rest, then rotation, linear acceleration and
-    taps: every motion state), 4000 samples."""
-    return mini_index.load("24_disturbed_tapping_A")
+    """One short trial, the one starting with ``24_`` (real: 24_disturbed_tapping_A; synthetic:
+    24_synthetic_tapping): rest, then rotation, linear acceleration and taps (every motion state),
+    4000 samples."""
+    return mini_index.load(mini_name(mini_index, "24"))
 
 
 def train_tiny_models(data_dir, trials, out):
@@ -78,8 +114,7 @@ def train_tiny_models(data_dir, trials, out):
 
 @pytest.fixture(scope="session")
 def tiny_model_dir(mini_index, tmp_path_factory):
-    """A model directory trained in seconds on the 3 mini trials (cuts of 02, 07, 24; no CV, no
-    gains): for tests of what is done *with* trained models (compiled inference, export)."""
+    """A model directory trained in seconds on the 3 mini trials (02, 07, 24; no CV, no gains): for tests of what is done *with* trained models (compiled inference, export)."""
     return train_tiny_models(mini_index.root, "02,07,24", tmp_path_factory.mktemp("models") / "tiny")
 
 

@@ -1,6 +1,7 @@
 """Benchmarks that cannot rot: every ``pipelines/bench_*.py`` runs its ``--quick`` mode here (seconds,
-on the mini BROAD cuts in ``tests/data/broad_mini``, made from BROAD on first use), measures against VQF in the same run and writes
-its table (Markdown + CSV) where ``--out`` says."""
+on the mini data: the BROAD cuts in ``tests/data/broad_mini``, made from BROAD on first use, or without
+BROAD the synthetic trials in ``tests/data/synthetic_mini``), measures against VQF in the same run and
+writes its table (Markdown + CSV) where ``--out`` says."""
 import csv
 import importlib
 import math

@@ -28,6 +28,7 @@ import subprocess
 import numpy as np
 import pytest
 
+from conftest import mini_name
 from togglecf.core.quaternion import angle_between
 from togglecf.embedded import cvqf, toolchain
 from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings
@@ -39,7 +40,9 @@ MINI_TOL_DEG = 0.001
 BROAD_TOL_DEG = 0.01
 WARN_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Wdouble-promotion", "-Wshadow", "-Wconversion",
               "-Werror"]
-MINI_TRIALS = ("02_undisturbed_slow_rotation_B", "07_undisturbed_fast_rotation_B", "24_disturbed_tapping_A")
+#: the mini trials by number (real: 02_undisturbed_slow_rotation_B, 07_undisturbed_fast_rotation_B,
+#: 24_disturbed_tapping_A; synthetic without BROAD: conftest.mini_index)
+MINI_TRIALS = ("02", "07", "24")
 #: text bytes of tcf_vqf.c at -Os (measured: host x86-64 8.5 KB, rv32imc 9.6 KB, Cortex-M4F 5.2 KB):
 #: a VQF core of at most 12 KiB leaves >= 20 KB of the issue's 32 KB for the trees
 TEXT_MAX = 12 * 1024
@@ -79,6 +82,7 @@ def _max_angle_deg(q1, q2):
 @pytest.mark.parametrize("use_mag", [True, False], ids=["9D", "6D"])
 @pytest.mark.parametrize("name", MINI_TRIALS)
 def test_c_matches_python_mini(mini_index, harness_for, name, use_mag):
+    name = mini_name(mini_index, name)
     t = mini_index.load(name)
     exe = harness_for(t.fs)
     py = _python(t.fs, t.gyr, t.acc, t.mag, use_mag)
@@ -97,7 +101,7 @@ def test_c_matches_python_mini(mini_index, harness_for, name, use_mag):
 
 def test_null_mag_is_6d(mini_index, harness_for):
     """mag = NULL throughout (6-column CSV) gives the 6D result: delta stays 0."""
-    t = mini_index.load(MINI_TRIALS[2])
+    t = mini_index.load(mini_name(mini_index, MINI_TRIALS[2]))
     exe = harness_for(t.fs)
     q_null = cvqf.run_vqf_harness(exe, t.gyr, t.acc)
     q_6d = cvqf.run_vqf_harness(exe, t.gyr, t.acc, t.mag, six_d=True)
@@ -139,7 +143,7 @@ def _corrupt(t):
 
 @pytest.mark.parametrize("use_mag", [True, False], ids=["9D", "6D"])
 def test_bad_samples_skipped_as_in_python(mini_index, harness_for, use_mag):
-    t = mini_index.load(MINI_TRIALS[2])
+    t = mini_index.load(mini_name(mini_index, MINI_TRIALS[2]))
     exe = harness_for(t.fs)
     gyr, acc, mag, dt, all_bad = _corrupt(t)
     py = _python(t.fs, gyr, acc, mag, use_mag, dt=dt)
@@ -161,7 +165,7 @@ def test_bad_samples_skipped_as_in_python(mini_index, harness_for, use_mag):
 def test_bad_samples_do_not_change_the_rest(mini_index, harness_for):
     """The skipped samples only cost their own information: the corrupted run ends within a
     small angle of the clean one (both in C)."""
-    t = mini_index.load(MINI_TRIALS[2])
+    t = mini_index.load(mini_name(mini_index, MINI_TRIALS[2]))
     exe = harness_for(t.fs)
     gyr, acc, mag, dt, _ = _corrupt(t)
     q_bad = cvqf.run_vqf_harness(exe, gyr, acc, mag, dt=dt)
@@ -309,7 +313,7 @@ def test_config_header_carries_the_settings(tmp_path):
 
 def test_non_default_settings_match_python(mini_index, tmp_path):
     """The coefficients derived in C follow the settings: a non-default export equals Python."""
-    t = mini_index.load(MINI_TRIALS[1])
+    t = mini_index.load(mini_name(mini_index, MINI_TRIALS[1]))
     s = VQFCoreSettings(tau_acc=1.5, tau_mag=4.0, mag_current_tau=0.0, rest_th_gyr=3.0, bias_sigma_motion=0.2)
     cvqf.export_c_vqf(tmp_path, t.fs, s, sizes=False)
     exe = cvqf.build_vqf_harness(tmp_path)

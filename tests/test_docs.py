@@ -6,8 +6,10 @@
   are not installed; CI installs the ``dev`` extra, which has them, so there it runs.
 * Every fenced ``python`` block of ``docs/**/*.md`` and ``README.md`` is executed by
   ``test_python_block`` (in a temporary working directory, with ``TOGGLECF_DATA`` pointing at the
-  mini BROAD cuts ``tests/data/broad_mini`` (made from BROAD by ``tests/conftest.py``) and ``models/default`` holding tiny models
-  trained on them with fixed gains), unless its first line is ``# not run: <reason>``.
+  mini directory of ``tests/conftest.py`` (the BROAD cuts ``tests/data/broad_mini``, made from BROAD;
+  without BROAD the synthetic ``tests/data/synthetic_mini``, where the names of the three real cuts in
+  an example are replaced by the synthetic trials of the same number) and ``models/default`` holding
+  tiny models trained on them with fixed gains), unless its first line is ``# not run: <reason>``.
   ``test_blocks_are_run_or_say_why`` fails on a marker without a reason and on python code fenced
   under another name, so no example escapes unnoticed.
 * ``test_generated_tables_name_their_run``: each file of ``docs/results/`` starts with the line
@@ -25,8 +27,9 @@ from pathlib import Path
 
 import pytest
 
+from conftest import mini_name
+
 REPO = Path(__file__).resolve().parents[1]
-MINI_DIR = REPO / "tests" / "data" / "broad_mini"
 DOC_FILES = sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
 PYTHON_FENCES = {"python", "py", "python3"}
 NOT_RUN = re.compile(r"^#\s*not run:(.*)$")
@@ -109,8 +112,13 @@ def docs_workdir(tmp_path_factory, tiny_model_dir):
 
 
 @pytest.mark.parametrize("rel,line,code", RUN_BLOCKS, ids=[f"{r}:{n}" for r, n, _ in RUN_BLOCKS])
-def test_python_block(rel, line, code, docs_workdir, mini_index, monkeypatch):
-    monkeypatch.setenv("TOGGLECF_DATA", str(MINI_DIR))
+def test_python_block(rel, line, code, docs_workdir, mini_index, mini_kind, monkeypatch):
+    monkeypatch.setenv("TOGGLECF_DATA", str(mini_index.root))
+    if mini_kind != "broad":  # the examples name the real cuts: run them on the synthetic trial of that number
+        from make_broad_mini import CUTS
+
+        for real in CUTS:
+            code = code.replace(real, mini_name(mini_index, real[:2]))
     monkeypatch.setenv("TOGGLECF_PROGRESS", "0")
     monkeypatch.chdir(docs_workdir)
     import matplotlib

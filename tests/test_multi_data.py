@@ -8,18 +8,23 @@ from pathlib import Path
 import h5py
 import pytest
 
-from conftest import MINI_DIR, TINY_TRAIN_TOML
+from conftest import TINY_TRAIN_TOML
 from togglecf.cli.main import main
 from togglecf.data.broad import DataError, DatasetIndex, MultiIndex, load_trial, open_index, trial_fields
 from togglecf.learn.labels import make_targets
 from togglecf.parallel.backend import data_location, load_trial_cached
 
+#: set by ``_mini_data``: the mini directory, its trial names (02, 07, 24) and its directory name, the
+#: dataset part of the names in a combined index (``broad_mini``: the real cuts; ``synthetic_mini``)
+MINI_DIR, MINI_NAMES, DS = None, [], ""
+
+
 @pytest.fixture(autouse=True)
-def _mini_data(mini_index):
-    """Every test here reads the mini directory (created from BROAD on first use)."""
-
-
-MINI_NAMES = ["02_undisturbed_slow_rotation_B", "07_undisturbed_fast_rotation_B", "24_disturbed_tapping_A"]
+def _mini_data(mini_index, mini_names):
+    """Every test here reads the mini directory (the real cuts from BROAD, or the synthetic trials
+    without it; made on first use)."""
+    global MINI_DIR, MINI_NAMES, DS
+    MINI_DIR, MINI_NAMES, DS = Path(mini_index.root), list(mini_names), Path(mini_index.root).name
 
 
 @pytest.fixture
@@ -65,22 +70,22 @@ def test_one_directory_keeps_plain_names(mini_index):
     assert isinstance(idx, DatasetIndex) and list(idx.available) == list(mini_index.available)
     assert isinstance(DatasetIndex.from_dirs([MINI_DIR]), DatasetIndex)
     # a selection written for several directories works on the one it names
-    assert idx.select("broad_mini/02,broad_mini/") == [MINI_NAMES[0], *MINI_NAMES[1:]]
+    assert idx.select(f"{DS}/02,{DS}/") == [MINI_NAMES[0], *MINI_NAMES[1:]]
 
 
 def test_combined_index_names_and_groups(two_dirs, mini_index):
     idx = open_index(list(two_dirs))
     assert isinstance(idx, MultiIndex) and idx.root == tuple(Path(d).resolve() for d in two_dirs)
-    assert list(idx.available) == [f"broad_mini/{n}" for n in MINI_NAMES] + [f"phone/{n}" for n in MINI_NAMES]
+    assert list(idx.available) == [f"{DS}/{n}" for n in MINI_NAMES] + [f"phone/{n}" for n in MINI_NAMES]
     # one group per dataset, then each directory's trials.json groups with the same prefix
     assert idx.groups["phone"] == [f"phone/{n}" for n in MINI_NAMES]
     for g, members in mini_index.groups.items():
-        assert idx.groups[f"broad_mini/{g}"] == [f"broad_mini/{t}" for t in members]
+        assert idx.groups[f"{DS}/{g}"] == [f"{DS}/{t}" for t in members]
         assert idx.groups[f"phone/{g}"] == [f"phone/{t}" for t in members]
     assert "undisturbed" not in idx.groups  # no unprefixed groups: they would mix datasets silently
-    t = idx.load("phone/24_disturbed_tapping_A")
-    assert t.name == "phone/24_disturbed_tapping_A" and t.groups[0] == "phone"
-    assert set(t.groups[1:]) == {f"phone/{g}" for g in mini_index.trial_groups("24_disturbed_tapping_A")}
+    t = idx.load(f"phone/{MINI_NAMES[2]}")
+    assert t.name == f"phone/{MINI_NAMES[2]}" and t.groups[0] == "phone"
+    assert set(t.groups[1:]) == {f"phone/{g}" for g in mini_index.trial_groups(MINI_NAMES[2])}
     assert "2 datasets" in idx.summary() and "phone/" in idx.summary()
     assert DatasetIndex.from_dirs(list(two_dirs)).available == idx.available
 
@@ -89,10 +94,9 @@ def test_selection_by_dataset_glob_and_item(two_dirs):
     idx = open_index(list(two_dirs))
     assert idx.select("phone/") == [f"phone/{n}" for n in MINI_NAMES]
     assert idx.select("phone/*") == idx.select("phone/")
-    assert idx.select("02") == [f"broad_mini/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[0]}"]  # every dataset
-    assert idx.select("*/24*") == [f"broad_mini/{MINI_NAMES[2]}", f"phone/{MINI_NAMES[2]}"]
-    assert idx.select("phone/07,broad_mini/24_disturbed_tapping_A") == [f"phone/{MINI_NAMES[1]}",
-                                                                       f"broad_mini/{MINI_NAMES[2]}"]
+    assert idx.select("02") == [f"{DS}/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[0]}"]  # every dataset
+    assert idx.select("*/24*") == [f"{DS}/{MINI_NAMES[2]}", f"phone/{MINI_NAMES[2]}"]
+    assert idx.select(f"phone/07,{DS}/{MINI_NAMES[2]}") == [f"phone/{MINI_NAMES[1]}", f"{DS}/{MINI_NAMES[2]}"]
     assert idx.select(None) == list(idx.available)
     for bad in ("phone/99", "nowhere/02", "*NoSuch*"):
         with pytest.raises(KeyError):
@@ -112,10 +116,10 @@ def test_workers_load_from_the_combined_location(two_dirs):
     idx = open_index(list(two_dirs))
     loc = data_location(idx)
     assert isinstance(loc, tuple) and len(loc) == 2
-    t = load_trial_cached(loc, "phone/07_undisturbed_fast_rotation_B")
-    assert t.name == "phone/07_undisturbed_fast_rotation_B" and t.source == idx.available[t.name]
+    t = load_trial_cached(loc, f"phone/{MINI_NAMES[1]}")
+    assert t.name == f"phone/{MINI_NAMES[1]}" and t.source == idx.available[t.name]
     with pytest.raises(KeyError):
-        load_trial_cached(loc, "07_undisturbed_fast_rotation_B")  # several directories: names carry them
+        load_trial_cached(loc, MINI_NAMES[1])  # several directories: names carry them
 
 
 # ------------------------------------------------------------------------------------- the CLI
@@ -126,13 +130,13 @@ def test_evaluate_on_two_directories(two_dirs, tmp_path, capsys):
                "--trials", "02,phone/24", "--jobs", "2", "--out", str(out)])
     assert rc == 0
     text = capsys.readouterr().out
-    for name in (f"broad_mini/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[2]}"):
+    for name in (f"{DS}/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[2]}"):
         assert name in text
-    assert f"broad_mini/{MINI_NAMES[2]}" not in text
-    assert "  broad_mini: mean over 1 trials" in text and "  phone: mean over 2 trials" in text
+    assert f"{DS}/{MINI_NAMES[2]}" not in text
+    assert f"  {DS}: mean over 1 trials" in text and "  phone: mean over 2 trials" in text
     res = json.loads((out / "results.json").read_text())
     assert res["data_dir"] == [str(Path(d).resolve()) for d in two_dirs]
-    assert {"broad_mini", "phone", "phone/undisturbed", "phone/disturbed"} <= set(res["per_group"])
+    assert {DS, "phone", "phone/undisturbed", "phone/disturbed"} <= set(res["per_group"])
     assert res["per_group"]["phone"]["n_trials"] == 2
 
 
@@ -159,7 +163,7 @@ def test_trial_without_opt_pos_loads_and_evaluates(no_pos_dir, tmp_path, capsys)
     t = load_trial(path)
     assert t.opt_pos is None and t.slice(0, 500).opt_pos is None
     rc = main(["evaluate", "--filter", "madgwick", "--data", str(MINI_DIR), "--data", str(no_pos_dir),
-               "--trials", "nopos/,broad_mini/02", "--jobs", "1"])
+               "--trials", f"nopos/,{DS}/02", "--jobs", "1"])
     assert rc == 0
     text = capsys.readouterr().out
     assert f"nopos/{MINI_NAMES[0]}" in text and "  nopos: mean over 2 trials" in text
@@ -189,7 +193,7 @@ def test_train_without_opt_pos_says_which_file_and_field(no_pos_dir, tmp_path, c
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY_TRAIN_TOML)
     rc = main(["train", "--config", str(cfg), "--data", str(MINI_DIR), "--data", str(no_pos_dir),
-               "--trials", "broad_mini/02,broad_mini/07,nopos/02", "--out", str(tmp_path / "m"), "--no-cv"])
+               "--trials", f"{DS}/02,{DS}/07,nopos/02", "--out", str(tmp_path / "m"), "--no-cv"])
     assert rc == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
@@ -206,13 +210,13 @@ def test_train_on_two_directories_from_config(two_dirs, tmp_path):
     from togglecf.run.config import load_config
     from togglecf.run.train import run_training
 
-    cfg = load_config({"run": {"data": [str(d) for d in two_dirs], "trials": "broad_mini/02,phone/07,phone/24"},
+    cfg = load_config({"run": {"data": [str(d) for d in two_dirs], "trials": f"{DS}/02,phone/07,phone/24"},
                        "classifier": {"n_estimators": 4, "max_depth": 3}, "regressor": {"n_estimators": 2,
                                                                                        "max_depth": 3},
                        "gains": {"learn": False}})
     res = run_training(cfg, out=tmp_path / "m", cv=False, verbose=False)
     meta = res["metadata"]
-    assert meta["training_trials"] == [f"broad_mini/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[1]}",
+    assert meta["training_trials"] == [f"{DS}/{MINI_NAMES[0]}", f"phone/{MINI_NAMES[1]}",
                                        f"phone/{MINI_NAMES[2]}"]
     assert meta["data_dir"] == [str(Path(d).resolve()) for d in two_dirs]
     assert set(meta["data_files"]) == set(meta["training_trials"])
@@ -225,10 +229,10 @@ def test_train_on_two_directories_from_config(two_dirs, tmp_path):
 
 def test_tune_on_two_directories(two_dirs, capsys):
     rc = main(["tune", "--filter", "madgwick", "--grid", "beta=0.05,0.1", "--data", str(two_dirs[0]), "--data",
-               str(two_dirs[1]), "--trials", "broad_mini/02,phone/02", "--jobs", "1"])
+               str(two_dirs[1]), "--trials", f"{DS}/02,phone/02", "--jobs", "1"])
     assert rc == 0
     out = capsys.readouterr().out
-    assert "over 2 trials" in out and "phone/undisturbed" in out and "broad_mini/undisturbed" in out
+    assert "over 2 trials" in out and "phone/undisturbed" in out and f"{DS}/undisturbed" in out
 
 
 # ------------------------------------------------------------------------------------ real data

@@ -57,7 +57,7 @@ def _train(mini_index, out, n_estimators):
     run_training(cfg, data_dir=mini_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
 
 
-def test_retrained_directory_is_not_served_from_the_cache(mini_index, tmp_path):
+def test_retrained_directory_is_not_served_from_the_cache(mini_index, mini_names, tmp_path):
     """Defect of issue 14: the compiled-model cache was keyed on the path, so a directory
     retrained in place ran old trees with new gains. It is keyed on the content now."""
     d = tmp_path / "models"
@@ -73,6 +73,6 @@ def test_retrained_directory_is_not_served_from_the_cache(mini_index, tmp_path):
     assert FilterSpec(TOGGLING, models=d).identity() == model_dir_digest(d)
     meta = json.loads((d / "metadata.json").read_text())
     assert meta["classifier_params"]["n_estimators"] == 9
-    t = mini_index.load("07_undisturbed_fast_rotation_B")
+    t = mini_index.load(mini_names[1])  # 07
     q = second.update_batch(t.gyr, t.acc, t.mag).quat
     assert np.all(np.isfinite(q))

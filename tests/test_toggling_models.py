@@ -21,10 +21,10 @@ def bundle(tiny_model_dir):
 
 @pytest.fixture(scope="module")
 def segment(mini_trial):
-    """A real recording with every motion state: the 4000-sample mini cut of trial 24 (it was
-    12000 samples of trial 05 when these tests needed the full BROAD; the claims are equalities
-    between two implementations, which need real inputs, not unseen ones; the slices below,
-    0:2500 split at 1001 and 0:4000, still fit)."""
+    """A trial with every motion state: the 4000-sample mini cut of trial 24 (it was 12000 samples of
+    trial 05 when these tests needed the full BROAD; the claims are equalities between two
+    implementations, which need realistic inputs, not unseen ones; the slices below, 0:2500 split at
+    1001 and 0:4000, still fit). Without BROAD: the synthetic trial 24 (same length, every state)."""
     return mini_trial
 
 

@@ -93,12 +93,12 @@ def vqf_model_dir(mini_index, tmp_path_factory):
     return out
 
 
-def test_train_learns_vqf_gains_and_the_registry_runs_them(vqf_model_dir, mini_index):
+def test_train_learns_vqf_gains_and_the_registry_runs_them(vqf_model_dir, mini_index, mini_names):
     s = load_gains(vqf_model_dir, kind=VQF_TOGGLING)
     assert isinstance(s, VQFTogglingSettings) and all(v in (1.0, 3.0, 8.0) for v in s.tau_acc_states)
     with pytest.raises(KeyError, match="no gains of mode .*vqf_6d"):
         load_gains(vqf_model_dir, use_mag=False, kind=VQF_TOGGLING)
-    t = mini_index.load("07_undisturbed_fast_rotation_B")
+    t = mini_index.load(mini_names[1])  # 07
     f = FilterSpec(VQF_TOGGLING, models=vqf_model_dir).build(t.fs)
     assert isinstance(f, ModelVQFTogglingFilter)
     o = f.update_batch(t.gyr, t.acc, t.mag)

@@ -14,7 +14,8 @@ from togglecf.data.broad import GRAVITY, Trial
 
 __all__ = ["EARTH_MAG_ENU", "imu_from_orientation", "static_trajectory", "axis_sweep_trajectory",
            "random_smooth_trajectory", "gimbal_trajectory", "turntable_trajectory", "random_walk_bias",
-           "linear_acceleration_bursts", "vibration", "mag_disturbance_intervals"]
+           "linear_acceleration_bursts", "vibration", "mag_disturbance_intervals", "rest_then_motion_trajectory",
+           "translation_moves", "taps", "write_broad_hdf5"]
 
 #: Earth field in ENU [µT]: 49 µT with 67° dip, close to Berlin's (where BROAD was recorded).
 EARTH_MAG_ENU = 49.0 * np.array([0.0, np.cos(np.radians(67.0)), -np.sin(np.radians(67.0))])
@@ -158,3 +159,85 @@ def mag_disturbance_intervals(n: int, fs: float, intervals=((10.0, 20.0, (30.0, 
     for start, stop, vec in intervals:
         out[(t >= start) & (t < stop)] += np.asarray(vec, float)
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Recordings shaped like BROAD's (rest, then movement; optical position; written in its layout)
+# ---------------------------------------------------------------------------------------------
+
+def rest_then_motion_trajectory(fs: float, rest_s: float, motion_s: float, max_rate: float = 2.0,
+                                knots_per_s: float = 2.0, ramp_s: float = 0.5, start_rpy_deg=(0.0, 0.0, 0.0),
+                                seed: int = 0) -> np.ndarray:
+    """``rest_s`` seconds at the orientation ``start_rpy_deg`` (roll, pitch, yaw [deg]), then
+    ``motion_s`` seconds of smooth random rotation; ``(n, 4)``, ``n = round((rest_s + motion_s)·fs)``.
+
+    The body rates are piecewise-linear between random knots (``knots_per_s`` per second, each
+    axis uniform in ``[-max_rate, max_rate]`` rad/s), faded in by a raised cosine over ``ramp_s``
+    seconds after the rest (no jump in the rate), and integrated exactly (``from_rotvec``)."""
+    rng = np.random.default_rng(seed)
+    n = int(round((rest_s + motion_s) * fs))
+    t = np.arange(n) / fs
+    knots = max(4, int(round(motion_s * knots_per_s)) + 1)
+    t_knots = rest_s + np.linspace(0.0, motion_s, knots)
+    rates = np.stack([np.interp(t, t_knots, rng.uniform(-1.0, 1.0, knots)) for _ in range(3)], axis=1) * max_rate
+    ramp = np.clip((t - rest_s) / ramp_s, 0.0, 1.0) if ramp_s > 0 else (t >= rest_s).astype(float)
+    rates *= (0.5 - 0.5 * np.cos(np.pi * ramp))[:, None]
+    dq = quat.from_rotvec(rates / fs)
+    q = np.empty((n, 4))
+    q[0] = quat.from_euler_zyx(np.radians(start_rpy_deg))
+    for k in range(1, n):
+        q[k] = quat.multiply(q[k - 1], dq[k])
+    return quat.normalize(q)
+
+
+def translation_moves(n: int, fs: float, moves=((5.0, 0.6, (0.3, 0.0, 0.0)),), start_pos=(0.0, 0.0, 0.0)):
+    """Point-to-point translations in ENU: each move ``(start [s], duration T [s], displacement
+    vector [m])`` follows the minimum-jerk profile ``d·(10s³ − 15s⁴ + 6s⁵)``, ``s = (t − start)/T``
+    (rest before and after; peak acceleration ``5.77·|d|/T²``). Returns ``(pos (n, 3) [m],
+    lin_acc_earth (n, 3) [m/s²])``: the position and its exact second derivative, so that an
+    optical position (``opt_pos``) and the linear acceleration the IMU feels agree."""
+    t = np.arange(n) / fs
+    pos = np.tile(np.asarray(start_pos, float), (n, 1))
+    acc = np.zeros((n, 3))
+    for start, dur, disp in moves:
+        d = np.asarray(disp, float)
+        s = np.clip((t - start) / dur, 0.0, 1.0)
+        inside = (t > start) & (t < start + dur)
+        pos += (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)[:, None] * d
+        acc += np.where(inside, (60 * s - 180 * s ** 2 + 120 * s ** 3) / dur ** 2, 0.0)[:, None] * d
+    return pos, acc
+
+
+def taps(n: int, fs: float, times=(5.0,), peak: float = 8.0, freq_hz: float = 60.0, decay_s: float = 0.02,
+         seed: int = 0) -> np.ndarray:
+    """Taps (a finger knocking on the sensor) as linear acceleration in ENU ``(n, 3)`` [m/s²]: at
+    each time [s] a sinusoid of ``freq_hz`` decaying with time constant ``decay_s``, of ``peak``
+    m/s² along a random direction. Their displacement is micrometres: no optical system sees it."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((n, 3))
+    t = np.arange(n) / fs
+    for t0 in times:
+        u = rng.standard_normal(3)
+        u /= np.linalg.norm(u)
+        tau = t - t0
+        on = tau >= 0
+        out[on] += (peak * np.exp(-tau[on] / decay_s) * np.sin(2 * np.pi * freq_hz * tau[on]))[:, None] * u
+    return out
+
+
+def write_broad_hdf5(path, trial: Trial, info: str) -> None:
+    """Write ``trial`` as one HDF5 file in BROAD's layout: the datasets ``imu_gyr``, ``imu_acc``,
+    ``imu_mag``, ``opt_quat``, ``opt_pos`` (float64) and ``movement`` (bool), gzip-compressed, and
+    the file attributes ``sampling_rate`` [Hz] and ``info`` (say where the data come from). No HDF5
+    timestamps: the same trial gives the same bytes."""
+    import h5py
+
+    opt_pos = np.full((trial.n_samples, 3), np.nan) if trial.opt_pos is None else trial.opt_pos
+    fields = {"imu_gyr": trial.gyr, "imu_acc": trial.acc, "imu_mag": trial.mag, "opt_quat": trial.opt_quat,
+              "opt_pos": opt_pos, "movement": np.asarray(trial.movement, bool)}
+    with h5py.File(path, "w", track_order=True) as f:
+        f.attrs["sampling_rate"] = float(trial.fs)
+        f.attrs["info"] = info
+        for k, v in fields.items():
+            f.create_dataset(k, data=v, dtype=bool if k == "movement" else np.float64, compression="gzip",
+                             compression_opts=9, track_times=False)

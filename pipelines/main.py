@@ -1,19 +1,40 @@
-"""The README's main job (`make run`): the held-out study on every BROAD trial found.
+"""The README's main job (`make run`): the held-out study on every BROAD trial found, then the
+cross-dataset protocol.
 
-Finds BROAD (downloading it into ./data/broad first when it is nowhere to be found, and
-saying so), then runs pipelines/run_all.py: per fold, train the models and learn the gains on
-the training trials, evaluate the toggling CF and all baselines on the held-out trials, and
-write reports/study/ (summary.md, tables, plots).
+1. Finds BROAD (downloading it into ./data/broad first when it is nowhere to be found, and saying
+   so) and runs the held-out study (``togglecf.run.study``): per fold, train the models and learn
+   the gains on the training trials, evaluate the learned filters and all baselines on the
+   held-out trials; writes reports/study/ (summary.md, tables, plots).
+2. Rate: the same held-out trials 3x decimated (95.2 Hz), each scored with the models of the fold
+   that held it out -> reports/transfer/rate.md.
+3. Sensor, when the phone data (BROAD layout; ``$TOGGLECF_PHONE_DATA``, else ``tyrex_nexus5`` beside
+   the BROAD directory) is there: models trained on all of BROAD scored on every phone trial ->
+   reports/transfer/phone.md; and the held-out study on BROAD + phone together (folds by whole
+   trial over both; no ablations) -> reports/study_both/ (per-dataset rows in its tables).
+
+    python pipelines/main.py [--skip-study]    # --skip-study: steps 2-3 on an existing reports/study
 """
+import argparse
+import logging
+import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
-from togglecf.data.broad import DataNotFoundError, resolve_data_dir
+from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
 from togglecf.data.download import download_broad
+from togglecf.run.config import load_config
 from togglecf.run.study import load_study_config, run_study
+from togglecf.run.train import run_training
+from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
 
 DEFAULT_DOWNLOAD_DIR = Path("data/broad")
+STUDY_DIR = Path("reports/study")
+TRANSFER_DIR = Path("reports/transfer")
+BOTH_DIR = Path("reports/study_both")
+log = logging.getLogger("togglecf.main")
 
 
 def data_dir() -> Path:
@@ -24,6 +45,55 @@ def data_dir() -> Path:
         return download_broad(DEFAULT_DOWNLOAD_DIR)
 
 
+def phone_dir(broad: Path) -> Path | None:
+    d = Path(os.environ.get("TOGGLECF_PHONE_DATA") or Path(broad).resolve().parent / "tyrex_nexus5")
+    return d if (d / "trials.json").is_file() else None
+
+
+def _write(name, per, index, what, command):
+    TRANSFER_DIR.mkdir(parents=True, exist_ok=True)
+    text = transfer_table(per, index, what, command)
+    atomic_write_text(TRANSFER_DIR / f"{name}.md", text)
+    atomic_write_json(TRANSFER_DIR / f"{name}.json", results_json(per))
+    print(text)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-3 only)")
+    args = p.parse_args(argv)
+    broad = data_dir()
+    if not args.skip_study:
+        run_study(load_study_config(), data_dir=broad, out_dir=STUDY_DIR)
+    elif not (STUDY_DIR / "results.json").is_file():
+        p.error(f"--skip-study: no study in {STUDY_DIR} (run without --skip-study first)")
+    command = "python pipelines/main.py"
+
+    log.info("rate: the held-out trials 3x decimated, each with the models of its fold")
+    dec = write_decimated(DatasetIndex.from_dir(broad), Path("build/data/broad_decimated_3x"), 3)
+    _write("rate", study_transfer(STUDY_DIR, DatasetIndex.from_dir(dec)), DatasetIndex.from_dir(dec),
+           f"each fold's models of `{STUDY_DIR}` on its own test trials, every 3 samples averaged (95.2 Hz)", command)
+
+    phone = phone_dir(broad)
+    if phone is None:
+        log.warning("phone data not found (set TOGGLECF_PHONE_DATA or put it beside BROAD as tyrex_nexus5): "
+                    "the sensor transfer and the two-dataset study are skipped")
+        return 0
+    log.info(f"sensor: models trained on all of BROAD, scored on every trial of {phone}")
+    model_dir = Path("build/transfer/models_broad")
+    run_training(load_config(), data_dir=broad, out=model_dir, verbose=True)
+    phone_index = DatasetIndex.from_dir(phone)
+    _write("phone", models_transfer(model_dir, phone_index), phone_index,
+           f"models trained on all {len(DatasetIndex.from_dir(broad).available)} BROAD trials, on all "
+           f"{len(phone_index.available)} trials of `{phone.name}`", command)
+
+    log.info("both datasets: the held-out study on BROAD + phone (folds by whole trial over both)")
+    cfg = replace(load_study_config(), ablations=())
+    run_study(cfg, data_dir=[str(broad), str(phone)], out_dir=BOTH_DIR)
+    return 0
+
+
 if __name__ == "__main__":
     setup_logging()
-    run_study(load_study_config(), data_dir=data_dir(), out_dir="reports/study")
+    sys.exit(main())

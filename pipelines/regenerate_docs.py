@@ -39,6 +39,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from togglecf.report.study_report import (ABLATION_LABELS, ABLATION_ROWS, LABELS, MAIN_FILTERS,
                                           paired_comparison)
 
@@ -173,6 +175,45 @@ def study_tables(study: Path, out: Path, command: str) -> None:
     prow = [[t] + [fmt(wide.loc[t, f]) for f in mains] for t in wide.index]
     write(out, "study_per_trial.md", head + "\nTotal RMSE [°] per trial, each with models, gains and baseline "
           "parameters fitted without it.\n\n" + md_table(["trial"] + mains, prow))
+
+
+def transfer_tables(transfer: Path, study: Path, both: Path, out: Path, command: str) -> None:
+    """The cross-dataset protocol of ``make run`` (``pipelines/main.py``): the rate and phone tables as
+    written there (they carry their own header), and what training on both datasets changed."""
+    import pandas as pd
+
+    for name in ("rate", "phone"):
+        src = transfer / f"{name}.md"
+        if src.is_file():
+            write(out, f"transfer_{name}.md", src.read_text())
+        else:
+            placeholder(out, f"transfer_{name}.md", f"`{_shown(src)}`", "Run `make run`.")
+    if not ((both / "per_trial.csv").is_file() and (study / "per_trial.csv").is_file()
+            and (transfer / "phone.json").is_file()):
+        placeholder(out, "transfer_both.md", f"`{_shown(both)}`, `{_shown(study)}` and `{_shown(transfer)}/phone.json`",
+                    "Run `make run` with the phone data present.")
+        return
+    alone = pd.read_csv(study / "per_trial.csv").pivot_table(index="trial", columns="filter", values="total")
+    joint = pd.read_csv(both / "per_trial.csv").pivot_table(index="trial", columns="filter", values="total")
+    phone = json.loads((transfer / "phone.json").read_text())
+    b_rows = [t for t in joint.index if t.split("/")[0] == "broad"]
+    p_rows = [t for t in joint.index if t.split("/")[0] != "broad"]
+    rows = []
+    for f in ("vqf_toggling", "toggling", "vqf_core_defaults", "vqf", "madgwick", "cf", "ekf"):
+        ph_alone = {"vqf_core_defaults": "vqf_core"}.get(f, f)
+        cells = [alone[f].mean() if f in alone else float("nan"),
+                 joint.loc[b_rows, f].mean() if f in joint else float("nan"),
+                 np.mean([r["total"] for r in phone[ph_alone].values()]) if ph_alone in phone else float("nan"),
+                 joint.loc[p_rows, f].mean() if f in joint else float("nan")]
+        rows.append([LABELS.get(f, f)] + [fmt(c) for c in cells])
+    src = (f"`{_shown(study)}` (BROAD alone, held out), `{_shown(both)}` (BROAD + phone, folds by whole trial over "
+           f"both, held out; {len(b_rows)} BROAD and {len(p_rows)} phone trials) and `{_shown(transfer)}/phone.json` "
+           "(trained on all of BROAD)")
+    write(out, "transfer_both.md", header(command, src) + "\nMean total RMSE [°]. Trained filters: held out in both "
+          "studies; on the phone, 'BROAD only' means models trained on all BROAD trials (it never saw a phone trial). "
+          "The classic filters are at their fold TAGP in the studies and at their defaults in the BROAD-only phone "
+          "column.\n\n" + md_table(["filter", "BROAD, trained on BROAD", "BROAD, trained on both",
+                                       "phone, trained on BROAD", "phone, trained on both"], rows))
 
 
 def spread_table(studies: list[Path], out: Path, command: str) -> None:
@@ -405,6 +446,9 @@ def main(argv=None) -> int:
                    help="trained model directory (default: models/default if present)")
     p.add_argument("--spread", default=None, metavar="DIRS",
                    help="comma-separated study outputs of different fold assignments -> study_spread.md")
+    p.add_argument("--transfer", default=None, metavar="DIR",
+                   help="the cross-dataset outputs of `make run` (default: reports/transfer if present; with "
+                        "reports/study_both)")
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -419,6 +463,13 @@ def main(argv=None) -> int:
                      "study_folds.md", "study_per_trial.md"):
             placeholder(out, name, "The study output `reports/study/results.json`",
                         f"Run `make run`, then `{SCRIPT}`.")
+
+    transfer = Path(args.transfer) if args.transfer else REPO / "reports" / "transfer"
+    if transfer.is_dir():
+        transfer_tables(transfer, study, transfer.parent / "study_both", out,
+                        f"{SCRIPT} --transfer {_shown(transfer) if args.transfer else 'reports/transfer'}")
+    elif args.transfer:
+        p.error(f"{transfer}: not found (run `make run`)")
 
     if args.spread:
         dirs = [Path(d) for d in args.spread.split(",") if d]

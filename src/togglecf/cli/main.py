@@ -126,7 +126,7 @@ def _tables(results: dict, groups: dict, invalid: dict | None = None):
     invalid = invalid or {}
     per_trial = pd.DataFrame(
         [{"trial": r.trial, **{m: r.errors[m] for m in METRICS}, "us_per_sample": r.us_per_sample,
-          "n_samples": r.n_samples, "n_invalid": invalid.get(r.trial, {}).get("samples", np.nan)}
+          "n_samples": r.n_samples, "n_invalid": invalid.get(r.trial, {}).get("samples", np.nan), **r.diagnostics}
          for r in results.values()]).set_index("trial")
     per_group = pd.DataFrame.from_dict(group_means({n: r.errors for n, r in results.items()}, groups),
                                        orient="index")
@@ -146,6 +146,9 @@ def _print_tables(title, per_trial, per_group, datasets=()):
     print(f"\nmean over {len(per_trial)} trials: total {per_trial['total'].mean():.3f}°, heading "
           f"{per_trial['heading'].mean():.3f}°, inclination {per_trial['inclination'].mean():.3f}°, "
           f"{per_trial['us_per_sample'].median():.3f} µs/sample (median)")
+    if "fallback" in per_trial:  # a learned filter: how often its models were not trusted (learn.ranges)
+        print(f"fallback (window out of the models' training range): {100 * per_trial['fallback'].mean():.1f} % of "
+              f"the scored samples (mean over trials; max {100 * per_trial['fallback'].max():.1f} %)")
     for ds in datasets:  # several data directories: one line per dataset (its group in the table above)
         if ds in per_group.index:
             r = per_group.loc[ds]

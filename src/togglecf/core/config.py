@@ -17,10 +17,11 @@ BACKENDS = ("local", "dask")
 
 #: ``[run]`` of a training config: run name, seed, threads, CV folds, trial selection, top-k features,
 #: where CV folds / per-trial features / sweeps run (``togglecf.parallel``), and the data directories
-#: (``data``: "" for the default location, a directory, or a list of them; ``--data`` overrides it)
+#: (``data``: "" for the default location, a directory, or a list of them; ``--data`` overrides it), and the
+#: out-of-range fallback threshold stored with the models (``learn.ranges``; 1 disables the fallback)
 RUN_DEFAULTS = {"name": "default", "seed": 0, "nthread": 2, "cv_folds": 5, "trials": "all", "max_features": 0,
                 "backend": "local", "scheduler": "", "retries": 2, "chunk_size": -1, "distributed_fit": False,
-                "data": ""}
+                "data": "", "max_out_of_range": 0.2}
 
 
 def config_path(name: str) -> Path:

@@ -50,10 +50,13 @@ from togglecf.toggling.gains import GAINS_FILE
 from togglecf.toggling.load import load_toggling_filter
 
 __all__ = ["export_c_filter", "build_harness", "run_harness", "harness_features", "TEMPLATES", "HARNESS_CFLAGS",
-           "state_bytes_formula"]
+           "state_bytes_formula", "features_config", "fallback_config", "check_feature_layout", "check_export_rate",
+           "FEATURE_TEMPLATES"]
 
-TEMPLATES = ("tcf_filter.h", "tcf_filter.c", "tcf_harness.c", "tcf_csv.h")
-FILTER_SOURCES = ("tcf_filter.c", "tcf_forest.c")
+#: the models in the loop (streaming features, range check, tree walk): shared with cvqf_toggling
+FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c")
+TEMPLATES = ("tcf_filter.h", "tcf_filter.c", *FEATURE_TEMPLATES, "tcf_harness.c", "tcf_csv.h")
+FILTER_SOURCES = ("tcf_filter.c", "tcf_features.c", "tcf_forest.c")
 HARNESS_CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic")
 #: the channel layout tcf_filter.c was written for (it hard-codes the ring columns)
 _WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
@@ -79,10 +82,74 @@ def _c_string(s: str) -> str:
     return '"' + str(s).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+def fallback_config(models) -> tuple[str, dict]:
+    """The ``tcf_config.h`` lines of the out-of-range fallback (``learn.ranges``, as
+    ``CompiledModels`` holds it) and a summary for the report. Only the features with finite low
+    and high enter (``TCF_BOUNDED_INIT``: their indices, written only when some feature is
+    unbounded; when all are, the index is the feature's own and the table is left out, 1 byte per
+    feature less); ``n_out > max_out_of_range · n_b`` is
+    ``n_out > TCF_MAX_OUT`` with the integer ``floor(max_out_of_range · n_b)`` (the same float64
+    product as Python). ``max_out_of_range >= 1`` (never falls back) or no bounded feature: 0
+    bounded features, the check is compiled out."""
+    low = np.asarray(getattr(models, "feature_low", np.full(models.forest.n_features, np.nan)), np.float64)
+    high = np.asarray(getattr(models, "feature_high", np.full(models.forest.n_features, np.nan)), np.float64)
+    max_out = float(getattr(models, "max_out_of_range", 1.0))
+    idx = [j for j in range(low.size) if math.isfinite(low[j]) and math.isfinite(high[j])]
+    limit = math.floor(max_out * len(idx)) if idx else 0
+    if not idx or limit >= len(idx):
+        idx = []
+    info = {"n_bounded": len(idx), "max_out_of_range": max_out, "max_out": limit if idx else None}
+    if not idx:
+        return ("/* out-of-range fallback (togglecf.learn.ranges): off (no bounded feature, or max_out_of_range "
+                f"{max_out:g} >= 1) */\n#define TCF_N_BOUNDED 0\n#define TCF_MAX_OUT 0\n"), info
+    if max(idx) > 255:
+        raise ValueError("the fallback's feature indices must fit uint8_t (at most 256 features)")
+
+    def arr(vals):
+        return "{" + ", ".join(vals) + "}"
+
+    lines = [f"/* out-of-range fallback (togglecf.learn.ranges): more than TCF_MAX_OUT = floor({max_out:g} x "
+             f"{len(idx)}) of the {len(idx)} bounded features",
+             " * outside their training range -> no prediction (NaN) until the next window end; bounds rounded to "
+             "float32 */",
+             f"#define TCF_N_BOUNDED {len(idx)}",
+             f"#define TCF_MAX_OUT {limit}",
+             (f"#define TCF_BOUNDED_INIT {arr(str(j) for j in idx)}" if len(idx) < low.size else
+              "/* every feature is bounded: feature j has bounds j (no index table, TCF_BOUNDED_INIT) */"),
+             f"#define TCF_FEATURE_LOW_INIT {arr(c_float(low[j]) for j in idx)}",
+             f"#define TCF_FEATURE_HIGH_INIT {arr(c_float(high[j]) for j in idx)}"]
+    return "\n".join(lines) + "\n", info
+
+
+def features_config(*, fs: float, window: int, hop: int, feat_params, models) -> str:
+    """The ``tcf_config.h`` block of the models in the loop (``tcf_features.c``): rate, window,
+    hop, EMA constants, gravity and the out-of-range fallback."""
+    lam_ref, lam_lp, gravity = float(feat_params.ref_decay), float(feat_params.lp_decay), float(feat_params.gravity)
+    fallback, _ = fallback_config(models)
+    return f"""/* sampling: call the update once per sample at this rate */
+#define TCF_FS {c_float(fs)}            /* Hz */
+#define TCF_DT {c_float(1.0 / fs)}      /* s, 1 / TCF_FS */
+
+/* features (togglecf.features.windows.FeatureSettings of the model) */
+#define TCF_WINDOW {window}          /* samples per window, L */
+#define TCF_HOP {hop}               /* samples between predictions, H */
+#define TCF_LAM_REF {c_float(lam_ref)}     /* exp(-1 / (ref_tau_s fs)): |m| and dip references */
+#define TCF_LAM_REF_C {c_float(1.0 - lam_ref)}   /* 1 - TCF_LAM_REF (rounded from float64) */
+#define TCF_LAM_LP {c_float(lam_lp)}      /* exp(-1 / (lp_tau_s fs)): acc low-pass */
+#define TCF_LAM_LP_C {c_float(1.0 - lam_lp)}
+#define TCF_GRAVITY {c_float(gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
+
+{fallback}
+/* tree leaf sums in float32 (define TCF_ACC_T as double before this header for double sums) */
+#ifndef TCF_ACC_T
+#define TCF_ACC_T float
+#endif
+"""
+
+
 def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, params, class_names, static_index: int,
                    window: int, hop: int, feat_params, schema_hash: str, model_hash: str, gains_hash: str,
-                   dropped) -> str:
-    lam_ref, lam_lp, gravity = float(feat_params.ref_decay), float(feat_params.lp_decay), float(feat_params.gravity)
+                   dropped, models) -> str:
 
     def arr(vals):
         return "{" + ", ".join(c_float(v) for v in vals) + "}"
@@ -101,20 +168,9 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, param
 
 #define TCF_MODEL_ID {_c_string(model_dir.name + ':' + model_hash[:12] + ':' + gains_hash[:12])}
 
-/* sampling: call tcf_filter_update once per sample at this rate */
-#define TCF_FS {c_float(fs)}            /* Hz */
-#define TCF_DT {c_float(1.0 / fs)}      /* s, 1 / TCF_FS */
+{features_config(fs=fs, window=window, hop=hop, feat_params=feat_params, models=models)}
 #define TCF_MAX_DT {c_float(settings.max_dt)}   /* s, longest step still integrated */
 #define TCF_USE_MAG {1 if use_mag else 0}
-
-/* features (togglecf.features.windows.FeatureSettings of the model) */
-#define TCF_WINDOW {window}          /* samples per window, L */
-#define TCF_HOP {hop}               /* samples between predictions, H */
-#define TCF_LAM_REF {c_float(lam_ref)}     /* exp(-1 / (ref_tau_s fs)): |m| and dip references */
-#define TCF_LAM_REF_C {c_float(1.0 - lam_ref)}   /* 1 - TCF_LAM_REF (rounded from float64) */
-#define TCF_LAM_LP {c_float(lam_lp)}      /* exp(-1 / (lp_tau_s fs)): acc low-pass */
-#define TCF_LAM_LP_C {c_float(1.0 - lam_lp)}
-#define TCF_GRAVITY {c_float(gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
 
 /* learned gains (gains.json, {'9d' if use_mag else '6d'}), per class in the order above: per-sample gains at
  * TCF_FS, k = 1 - exp(-TCF_DT / tau) of the learned time constants (this build is for TCF_FS only)
@@ -131,22 +187,18 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, param
 #define TCF_NOISE_WEIGHT_MAG {c_float(settings.noise_weight_mag)}
 #define TCF_CLASS_NAMES_INIT {names}
 
-/* tree leaf sums in float32 (define TCF_ACC_T as double before this header for double sums) */
-#ifndef TCF_ACC_T
-#define TCF_ACC_T float
-#endif
-
 #endif /* TCF_CONFIG_H */
 """
 
 
 _MAKEFILE = """# Host build of the exported toggling filter (see tcf_filter.h). For a firmware build, add
-# tcf_filter.c and tcf_forest.c (+ the three headers) to the project; no other file is needed.
+# tcf_filter.c, tcf_features.c and tcf_forest.c (+ the four headers) to the project; no other file is needed.
 CC ?= gcc
 CFLAGS ?= {cflags}
 
-tcf_harness: tcf_harness.c tcf_csv.h tcf_filter.c tcf_forest.c tcf_filter.h tcf_forest.h tcf_config.h
-\t$(CC) $(CFLAGS) -o $@ tcf_harness.c tcf_filter.c tcf_forest.c -lm
+tcf_harness: tcf_harness.c tcf_csv.h tcf_filter.c tcf_features.c tcf_forest.c tcf_filter.h tcf_features.h tcf_forest.h \\
+\t\ttcf_config.h
+\t$(CC) $(CFLAGS) -o $@ tcf_harness.c tcf_filter.c tcf_features.c tcf_forest.c -lm
 
 clean:
 \trm -f tcf_harness
@@ -180,9 +232,9 @@ int main(void) {
 """
 
 
-def _check_feature_layout():
+def check_feature_layout():
     if tuple(WINDOW_CHANNELS) != _WINDOW_CHANNELS or tuple(LAST_CHANNELS) != _LAST_CHANNELS:
-        raise RuntimeError("togglecf.features.windows changed its channels: update togglecf/embedded/tcf_filter.c "
+        raise RuntimeError("togglecf.features.windows changed its channels: update togglecf/embedded/tcf_features.c "
                            "(tcf_push_sample) and cfilter._WINDOW_CHANNELS/_LAST_CHANNELS to match")
 
 
@@ -192,13 +244,11 @@ def _measure_state_bytes(out_dir: Path) -> tuple[int, int]:
     return int(size), int(documented)
 
 
-def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:
-    """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
-    for sampling rate ``fs`` [Hz] into ``out_dir``; returns the report (also written as
-    ``out_dir/filter_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_filter_t), measured
-    with gcc), ``object_sizes`` and, with the RISC-V toolchain, ``linked_riscv`` (an rv32imc
-    picolibc program calling init/update: its ``flash`` = text + data bytes)."""
-    model_dir, out_dir = Path(model_dir), Path(out_dir)
+def check_export_rate(model_dir, fs) -> tuple[dict, float]:
+    """The checks every filter export makes: ``model_dir`` is a model directory with
+    ``gains.json``, ``fs`` a positive rate equal to the models' ``sampling_rate`` (the features
+    were learned at it). Returns (metadata, fs as float)."""
+    model_dir = Path(model_dir)
     meta_path = model_dir / "metadata.json"
     if not meta_path.is_file():
         raise FileNotFoundError(f"{meta_path}: not a model directory (run `togglecf train`)")
@@ -215,7 +265,19 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
         raise ValueError(f"fs = {fs:g} Hz differs from the models' sampling_rate {float(sr):g} Hz in {meta_path}: "
                          "the models' features were learned at that rate; export for "
                          f"fs={float(sr):g} (and resample the IMU to it) or retrain at {fs:g} Hz")
-    _check_feature_layout()
+    return meta, fs
+
+
+def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:
+    """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
+    for sampling rate ``fs`` [Hz] into ``out_dir``; returns the report (also written as
+    ``out_dir/filter_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_filter_t), measured
+    with gcc), ``object_sizes`` and, with the RISC-V toolchain, ``linked_riscv`` (an rv32imc
+    picolibc program calling init/update: its ``flash`` = text + data bytes)."""
+    model_dir, out_dir = Path(model_dir), Path(out_dir)
+    meta, fs = check_export_rate(model_dir, fs)
+    gains_path = model_dir / GAINS_FILE
+    check_feature_layout()
 
     filt = load_toggling_filter(model_dir, fs, use_mag=use_mag)
     s = filt.settings
@@ -242,7 +304,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     files.append(atomic_write_text(out_dir / "tcf_config.h", _config_header(
         model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, settings=s, params=filt.params, class_names=classes,
         static_index=s.states.index(s.static_state), window=L, hop=hop, feat_params=filt._features.params,
-        schema_hash=schema_hash, model_hash=model_hash, gains_hash=gains_hash, dropped=dropped)))
+        schema_hash=schema_hash, model_hash=model_hash, gains_hash=gains_hash, dropped=dropped, models=filt.models)))
     comment = (f"model {model_dir.resolve().name}: outputs {', '.join(classes)} (margins), eta_acc xyz, eta_mag xyz"
                + (f"; trees of {', '.join(dropped)} not exported (base margin only)" if dropped else ""))
     header, source = forest_to_c(forest, "tcf_", k, comment)
@@ -260,6 +322,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
                                    "gamma": float(filt.params.gamma), "bias_gain": float(filt.params.bias_gain)},
               "schema_hash": schema_hash,
               "model_hash": model_hash, "gains_sha256": gains_hash,
+              "fallback": fallback_config(filt.models)[1],
               "state_bytes_formula": "4 * (52 + 16 * window + n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = _measure_state_bytes(out_dir)
@@ -279,7 +342,8 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     executable (default ``out_dir/tcf_harness``). Raises ``RuntimeError`` with gcc's output."""
     out_dir = Path(out_dir)
     gcc = need_gcc("building the C filter's harness")
-    missing = [f for f in ("tcf_harness.c", "tcf_csv.h", *FILTER_SOURCES, "tcf_filter.h", "tcf_forest.h", "tcf_config.h")
+    missing = [f for f in ("tcf_harness.c", "tcf_csv.h", *FILTER_SOURCES, "tcf_filter.h", "tcf_features.h", "tcf_forest.h",
+                           "tcf_config.h")
                if not (out_dir / f).is_file()]
     if missing:
         raise FileNotFoundError(f"{out_dir}: missing {', '.join(missing)} (run export_c_filter first)")

@@ -1,5 +1,6 @@
-/* CSV helpers of the host harnesses (tcf_harness.c, tcf_vqf_harness.c); host only, not firmware.
-   Every function is static: include this header in one translation unit. */
+/* CSV helpers of the host harnesses (tcf_harness.c, tcf_vqf_harness.c, tcf_vqf_toggling_harness.c);
+   host only, not firmware. Every function is static: include this header in one translation unit;
+   define TCF_CSV_READ before it for the whole-file reader tcf_csv_read. */
 #ifndef TCF_CSV_H
 #define TCF_CSV_H
 
@@ -49,5 +50,90 @@ static int tcf_csv_parse_field(const char *b, const char *e, float *out) {
   *out = (float)v;
   return 1;
 }
+
+#ifdef TCF_CSV_READ
+#include <errno.h>
+
+#define TCF_CSV_LINE_MAX 8192
+
+/* Read a CSV file with a header line whose column count is one of allowed[0..n_allowed-1]
+   into *rows (stride = the largest allowed count; missing columns are 0). Returns 0 on
+   success (*n_rows, *n_cols set) or 1 after printing an error naming the file and line. */
+static int tcf_csv_read(const char *prog, const char *path, const int *allowed, int n_allowed, const char *expected,
+                        float **rows, long *n_rows, int *n_cols) {
+  char line[TCF_CSV_LINE_MAX];
+  long lineno = 1, n = 0, cap = 0;
+  int stride = 0, i, k, ok = 0;
+  float *x = NULL;
+  FILE *fin = fopen(path, "r");
+  if (!fin) return tcf_csv_fail(prog, path, 0, "cannot open:", strerror(errno));
+  if (!fgets(line, sizeof line, fin)) {
+    fclose(fin);
+    return tcf_csv_fail(prog, path, 0, "empty file: expected a header line such as", expected);
+  }
+  tcf_csv_strip_eol(line);
+  *n_cols = tcf_csv_count_fields(line);
+  for (i = 0; i < n_allowed; ++i) {
+    if (allowed[i] == *n_cols) ok = 1;
+    if (allowed[i] > stride) stride = allowed[i];
+  }
+  if (!ok) {
+    char msg[160];
+    sprintf(msg, "header has %d columns, expected %s; header:", *n_cols, expected);
+    fclose(fin);
+    return tcf_csv_fail(prog, path, 1, msg, line);
+  }
+  while (fgets(line, sizeof line, fin)) {
+    const char *b;
+    float *row;
+    ++lineno;
+    if (strchr(line, '\n') == NULL && !feof(fin)) {
+      fclose(fin);
+      free(x);
+      return tcf_csv_fail(prog, path, lineno, "line too long", NULL);
+    }
+    tcf_csv_strip_eol(line);
+    if (line[0] == '\0') continue;  /* blank lines (e.g. at the end) */
+    if (tcf_csv_count_fields(line) != *n_cols) {
+      char msg[64];
+      sprintf(msg, "expected %d fields, got %d:", *n_cols, tcf_csv_count_fields(line));
+      fclose(fin);
+      free(x);
+      return tcf_csv_fail(prog, path, lineno, msg, line);
+    }
+    if (n == cap) {
+      float *grown;
+      cap = cap ? 2 * cap : 4096;
+      grown = (float *)realloc(x, sizeof(float) * (size_t)stride * (size_t)cap);
+      if (!grown) {
+        fclose(fin);
+        free(x);
+        return tcf_csv_fail(prog, path, lineno, "out of memory", NULL);
+      }
+      x = grown;
+    }
+    row = x + (long)stride * n;
+    b = line;
+    for (k = 0; k < *n_cols; ++k) {
+      const char *e = strchr(b, ',');
+      if (!e) e = b + strlen(b);
+      if (!tcf_csv_parse_field(b, e, row + k)) {
+        char msg[64];
+        sprintf(msg, "column %d is not a number:", k + 1);
+        fclose(fin);
+        free(x);
+        return tcf_csv_fail(prog, path, lineno, msg, line);
+      }
+      b = *e ? e + 1 : e;
+    }
+    for (; k < stride; ++k) row[k] = 0.0f;
+    ++n;
+  }
+  fclose(fin);
+  *rows = x;
+  *n_rows = n;
+  return 0;
+}
+#endif /* TCF_CSV_READ */
 
 #endif /* TCF_CSV_H */

@@ -1,8 +1,9 @@
 /* tcf_filter.c: the toggling-gain CF of togglecf in C99, float32 (API in tcf_filter.h).
  *
  * Line-by-line port of (togglecf/...):
- *   streaming_features.py  push_sample, window_features     -> tcf_push_sample, tcf_window_features
- *   filters/toggling.py    inloop_step, _gains, toggle_step  -> tcf_filter_update_dt, tcf_gains, tcf_toggle_step
+ *   toggling/inloop.py     inloop_step                       -> tcf_filter_update_dt (the models:
+ *                                                               tcf_features_push, tcf_features.c)
+ *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
  *   filters/base.py        vector_ok, gyro_increment, acc_mag_quaternion
  *   quaternion.py          multiply/normalize/rotate/from_rotvec/from_matrix/from_acc_mag (_scalar)
  * The comments "step N" refer to the steps of the module docstring of filters/toggling.py.
@@ -13,7 +14,6 @@
 
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
-typedef char tcf_n_features_check[(TCF_N_FEATURES == 4 * (TCF_RING_COLS - 1) + 1 + TCF_N_LAST) ? 1 : -1];
 
 /* filters/base.py GYRO_FULL_SCALE: a gyro axis at or beyond it is saturated [rad/s] */
 #define TCF_GYRO_FULL_SCALE 34.9f
@@ -145,126 +145,6 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
   return ok;
 }
 
-/* ------------------------------------------------------------------ streaming_features.py */
-
-/* Exponential moving average r <- lam r + (1 - lam) x = r + c (x - r), c = 1 - lam, kept as an
-   unevaluated sum hi + lo (compensated, as Kahan summation). A plain float32 EMA with c ~ 3.5e-4
-   loses up to half an ulp of r per sample against c (x - r) (a dead band of up to
-   ulp(r) / (2 c), ~5e-3 uT at |m| ~ 50 uT); measured on BROAD trial 05 the plain form puts
-   mag_norm_dev up to 1.4e-4 uT off the float64 reference, hi + lo 5e-6 uT (dip_dev 3.6e-6 vs
-   1.2e-6 rad, acc_hp 8.8e-6 vs 6.1e-7 m/s^2). Costs 5 floats of state. */
-static void ema_update(float *hi, float *lo, float c, float x) {
-  float y = *lo + c * ((x - *hi) - *lo);  /* the amount to add to hi */
-  float t = *hi + y;
-  float yv = t - *hi;
-  *lo = (*hi - (t - yv)) + (y - yv);  /* exact rounding error of hi + y (TwoSum) */
-  *hi = t;
-}
-
-/* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
-   0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8-10 mag, 11 |mag|, 12 jerk, 13 mag_norm_dev,
-   14 dip_dev, 15 |gyr|^2 (gyr_energy). */
-static void tcf_push_sample(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
-  float *row = f->ring[f->pos];
-  float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];
-  float an = sqrtf(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]);
-  float mn = sqrtf(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]);
-  float cosang = an * mn > 0.0f ? (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) : 0.0f;
-  float dip, jerk, c;
-  int i;
-  if (!isfinite(cosang)) cosang = 0.0f;  /* nan_to_num, as the vectorised version */
-  c = -cosang;
-  c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
-  dip = asinf(c);
-  if (f->n_filled == 0) {  /* EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
-    f->ref_mag = mn;
-    f->ref_dip = dip;
-    f->ref_mag_lo = 0.0f;
-    f->ref_dip_lo = 0.0f;
-    for (i = 0; i < 3; ++i) {
-      f->acc_lp[i] = acc[i];
-      f->acc_lp_lo[i] = 0.0f;
-      f->prev_acc[i] = acc[i];
-    }
-    jerk = 0.0f;
-  } else {
-    float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
-    jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
-  }
-  row[0] = gyr[0]; row[1] = gyr[1]; row[2] = gyr[2];
-  row[3] = sqrtf(gn2);
-  row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
-  row[7] = an - TCF_GRAVITY;
-  row[8] = mag[0]; row[9] = mag[1]; row[10] = mag[2];
-  row[11] = mn;
-  row[12] = jerk;
-  row[13] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
-  row[14] = (dip - f->ref_dip) - f->ref_dip_lo;
-  row[15] = gn2;
-  /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_x/y/z, mag_norm_dev, dip_dev, acc_hp_x/y/z */
-  f->last[0] = row[3];
-  f->last[1] = row[4]; f->last[2] = row[5]; f->last[3] = row[6];
-  f->last[4] = row[7];
-  f->last[5] = row[8]; f->last[6] = row[9]; f->last[7] = row[10];
-  f->last[8] = row[13];
-  f->last[9] = row[14];
-  for (i = 0; i < 3; ++i) f->last[10 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
-  /* update the references with sample k, only from finite values; a reference that is not
-     finite yet (the first samples were bad) starts at the first finite sample */
-  if (isfinite(mn) && isfinite(dip)) {
-    if (isfinite(f->ref_mag) && isfinite(f->ref_dip)) {
-      ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
-      ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
-    } else {
-      f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
-    }
-  }
-  if (isfinite(an)) {
-    if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
-      for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
-    } else {
-      for (i = 0; i < 3; ++i) { f->acc_lp[i] = acc[i]; f->acc_lp_lo[i] = 0.0f; }
-    }
-  }
-  /* jerk next to a bad sample is missing, as in togglecf.features */
-  f->prev_acc[0] = acc[0]; f->prev_acc[1] = acc[1]; f->prev_acc[2] = acc[2];
-  if (f->n_filled < TCF_WINDOW) f->n_filled++;
-  f->pos = (f->pos + 1u) % TCF_WINDOW;
-}
-
-/* Feature row of the window ending at the last pushed sample (window_features): mean, std,
-   min, max of ring columns 0-14, mean of column 15, then the 13 *_last values. A column with a
-   non-finite value in the window gives NaN (missing) stats, as the numba and vectorised code. */
-static void tcf_window_features(const tcf_filter_t *f, float out[TCF_N_FEATURES]) {
-  int c, i, j;
-  float e = 0.0f;
-  for (c = 0; c < TCF_RING_COLS - 1; ++c) {
-    float s = 0.0f, ss = 0.0f, lo = f->ring[0][c], hi = f->ring[0][c], mean;
-    for (i = 0; i < TCF_WINDOW; ++i) {
-      float v = f->ring[i][c];
-      s += v;
-      if (v < lo) lo = v;
-      if (v > hi) hi = v;
-    }
-    if (!isfinite(s)) {  /* a non-finite value in the window: this channel's stats are missing */
-      out[4 * c] = out[4 * c + 1] = out[4 * c + 2] = out[4 * c + 3] = NAN;
-      continue;
-    }
-    mean = s / (float)TCF_WINDOW;
-    for (i = 0; i < TCF_WINDOW; ++i) {
-      float d = f->ring[i][c] - mean;
-      ss += d * d;
-    }
-    out[4 * c] = mean;
-    out[4 * c + 1] = sqrtf(ss / (float)TCF_WINDOW);
-    out[4 * c + 2] = lo;
-    out[4 * c + 3] = hi;
-  }
-  for (i = 0; i < TCF_WINDOW; ++i) e += f->ring[i][TCF_RING_COLS - 1];
-  out[4 * (TCF_RING_COLS - 1)] = isfinite(e) ? e / (float)TCF_WINDOW : NAN;
-  for (j = 0; j < TCF_N_LAST; ++j) out[4 * (TCF_RING_COLS - 1) + 1 + j] = f->last[j];
-}
-
 /* ------------------------------------------------------------------ filters/toggling.py */
 
 /* Probability-weighted gains (step 4, _gains); a non-finite probability row (no prediction
@@ -299,7 +179,7 @@ static void tcf_gains(const float *pred, float *aa, float *am) {
 /* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->pred. */
 static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3],
                             float dt) {
-  const float *pred = f->pred;
+  const float *pred = f->feat.pred;
   const float *eta_a = pred + TCF_N_CLASSES, *eta_m = pred + TCF_N_CLASSES + 3;
   float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3];
   int j, eta_ok = 1, acc_ok, mag_ok, g_ok;
@@ -370,46 +250,25 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
 /* ------------------------------------------------------------------ API */
 
 void tcf_filter_init(tcf_filter_t *f) {
-  int i, j;
+  int j;
   f->q[0] = 1.0f; f->q[1] = 0.0f; f->q[2] = 0.0f; f->q[3] = 0.0f;
   for (j = 0; j < 3; ++j) {
-    f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f; f->acc_lp[j] = 0.0f; f->prev_acc[j] = 0.0f;
+    f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
   f->initialised = 0u;
-  for (i = 0; i < TCF_WINDOW; ++i)
-    for (j = 0; j < TCF_RING_COLS; ++j) f->ring[i][j] = 0.0f;
-  f->ref_mag = 0.0f;
-  f->ref_dip = 0.0f;
-  f->ref_mag_lo = 0.0f;
-  f->ref_dip_lo = 0.0f;
-  for (j = 0; j < 3; ++j) f->acc_lp_lo[j] = 0.0f;
-  for (j = 0; j < TCF_N_LAST; ++j) f->last[j] = 0.0f;
-  f->n_filled = 0u;
-  f->pos = 0u;
-  f->hop_phase = 0u;
-  for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
+  tcf_features_init(&f->feat);  /* empty window, no prediction before the first full window */
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = 0.0f;
 }
 
 /* inloop_step: push the features; at a window end (every TCF_HOP samples once the window is
-   full) evaluate the trees into f->pred (held until the next one); then the toggling step. */
+   full) evaluate the trees into f->feat.pred (held until the next one; NaN when the window is
+   out of the training range); then the toggling step. */
 void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
   static const float zeros[3] = {0.0f, 0.0f, 0.0f};
   if (mag == NULL) mag = zeros;
-  tcf_push_sample(f, gyr, acc, mag);
-  if (f->n_filled == TCF_WINDOW) {
-    if (f->hop_phase == 0u) {
-      float feat[TCF_N_FEATURES], margin[TCF_N_OUTPUTS];
-      int k;
-      tcf_window_features(f, feat);
-      tcf_predict(feat, margin);
-      tcf_softmax(margin);  /* class margins -> probabilities; eta_a, eta_m stay raw */
-      for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = margin[k];
-    }
-    f->hop_phase = (f->hop_phase + 1u) % TCF_HOP;
-  }
+  tcf_features_push(&f->feat, gyr, acc, mag);
   tcf_toggle_step(f, gyr, acc, mag, dt);
 }
 
@@ -417,7 +276,7 @@ void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc
                             const float pred[TCF_N_PRED]) {
   static const float zeros[3] = {0.0f, 0.0f, 0.0f};
   int k;
-  for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = pred[k];
+  for (k = 0; k < TCF_N_PRED; ++k) f->feat.pred[k] = pred[k];
   tcf_toggle_step(f, gyr, acc, mag == NULL ? zeros : mag, dt);
 }
 
@@ -430,13 +289,11 @@ void tcf_filter_quat(const tcf_filter_t *f, float q[4]) {
 }
 
 int tcf_filter_features(const tcf_filter_t *f, float feat[TCF_N_FEATURES]) {
-  if (f->n_filled < TCF_WINDOW) return 0;
-  tcf_window_features(f, feat);
-  return 1;
+  return tcf_features_row(&f->feat, feat);
 }
 
 int tcf_filter_prediction(const tcf_filter_t *f, float pred[TCF_N_PRED]) {
   int k;
-  for (k = 0; k < TCF_N_PRED; ++k) pred[k] = f->pred[k];
-  return isfinite(f->pred[0]) ? 1 : 0;
+  for (k = 0; k < TCF_N_PRED; ++k) pred[k] = f->feat.pred[k];
+  return isfinite(f->feat.pred[0]) ? 1 : 0;
 }

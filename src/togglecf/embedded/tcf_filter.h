@@ -1,19 +1,17 @@
 /* tcf_filter.h: the toggling-gain complementary filter of togglecf in C99 (float32).
  *
- * A port of togglecf.filters.toggling.inloop_step: per sample, the 16 feature channels are
- * pushed into a ring buffer of the last TCF_WINDOW samples (togglecf.streaming_features); at
- * every window end (once the window is full, then every TCF_HOP samples) the 74 window
- * features go through the generated tree ensemble (tcf_forest.c: class margins -> softmax,
- * plus the predicted acc/mag noise eta_a, eta_m), and the prediction is held until the next
- * window end; then the toggling step (steps 1-7 of togglecf.filters.toggling) updates the
- * orientation.
+ * A port of togglecf.toggling.inloop.inloop_step with the toggling step: the models in the
+ * loop (tcf_features.{h,c}, shared with the learned VQF export: streaming features, the range
+ * check of the out-of-range fallback, the generated tree ensemble tcf_forest.c every TCF_HOP
+ * samples, the prediction held until the next window end), then the toggling step (steps 1-7
+ * of togglecf.filters.toggling) updates the orientation.
  *
  * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth,
  * earth frame ENU (x east, y north, z up). Units: gyr rad/s, acc m/s^2, mag uT (only the
  * magnetometer's direction enters the orientation, but the features use its norm in uT).
  *
  * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
- * no globals written). At a window end tcf_filter_update keeps the feature row and the
+ * no globals written). At a window end tcf_features_push keeps the feature row and the
  * outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats); in all, 752 bytes of stack for
  * the 74-feature default export (gcc -fstack-usage, rv32imc -Os, deepest call chain).
  * Reentrant: one tcf_filter_t per sensor.
@@ -36,19 +34,11 @@
 #define TCF_FILTER_H
 
 #include <stdint.h>
-#include "tcf_config.h"
-#include "tcf_forest.h"
+#include "tcf_features.h"
 
 #ifdef __cplusplus
 extern "C" {
 #endif
-
-/* per-sample channels kept in the ring (togglecf.features.WINDOW_CHANNELS + gyr_energy) */
-#define TCF_RING_COLS 16
-/* channels whose current value is a feature (togglecf.features.LAST_CHANNELS) */
-#define TCF_N_LAST 13
-/* class probabilities, then eta_a xyz [m/s^2], then eta_m xyz [uT] */
-#define TCF_N_PRED (TCF_N_CLASSES + 6)
 
 typedef struct tcf_filter {
   /* orientation filter (toggle_step) */
@@ -57,18 +47,8 @@ typedef struct tcf_filter {
   float a_pred[3];     /* gyro-propagated, filtered specific force (sensor frame) [m/s^2] */
   float m_pred[3];     /* gyro-propagated, filtered magnetic field (sensor frame) [uT] */
   uint32_t initialised;  /* 0 until the first valid acc(/mag) sample */
-  /* feature window (streaming_features.push_sample) */
-  float ring[TCF_WINDOW][TCF_RING_COLS];
-  float ref_mag, ref_mag_lo;  /* EMA r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_filter.c) */
-  float ref_dip, ref_dip_lo;  /* EMA d_{k-1} of the dip angle [rad], hi + lo */
-  float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
-  float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */
-  float last[TCF_N_LAST];  /* the *_last features of the newest sample */
-  uint32_t n_filled;   /* samples in the ring (saturates at TCF_WINDOW) */
-  uint32_t pos;        /* ring row of the next sample */
-  uint32_t hop_phase;  /* samples since the last window end, modulo TCF_HOP */
-  /* held prediction (NaN before the first full window) */
-  float pred[TCF_N_PRED];
+  /* feature window and held prediction (tcf_features.h; NaN before the first full window) */
+  tcf_features_t feat;
   /* diagnostics of the last sample */
   float alpha_acc;     /* accelerometer gain used (0: no acc correction) */
   float alpha_mag;     /* magnetometer gain used (0: no heading correction) */
@@ -100,7 +80,8 @@ void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc
 void tcf_filter_quat(const tcf_filter_t *f, float q[4]);
 
 /* Held prediction pred[TCF_N_PRED]: class probabilities (order TCF_CLASS_NAMES), eta_a xyz,
-   eta_m xyz. Returns 0 before the first full window (pred is NaN then), 1 otherwise. */
+   eta_m xyz. Returns 0 when there is none (pred is NaN: before the first full window, or the
+   window was out of the training range, tcf_features_fallback), 1 otherwise. */
 int tcf_filter_prediction(const tcf_filter_t *f, float pred[TCF_N_PRED]);
 
 /* Feature row feat[TCF_N_FEATURES] (names: togglecf.features.feature_schema) of the window

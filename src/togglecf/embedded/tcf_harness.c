@@ -9,8 +9,9 @@
  * out.csv: a header line, then w,x,y,z per sample (sensor -> ENU).
  * Options:
  *   --no-mag         pass mag = NULL even when the file has mag columns;
- *   --diag           add the held prediction (p_<class>..., eta_acc_xyz, eta_mag_xyz) and the
- *                    gains used (alpha_acc, alpha_mag) to out.csv;
+ *   --diag           add the held prediction (p_<class>..., eta_acc_xyz, eta_mag_xyz), the
+ *                    gains used (alpha_acc, alpha_mag) and fallback (1: the held window was out
+ *                    of the training range, no prediction) to out.csv;
  *   --time           print the filter's time per sample (the update calls only, clock()) to stderr;
  *   --features F     write the feature row of every window end (sample index, TCF_N_FEATURES
  *                    values) to F (slows the loop: do not combine with --time);
@@ -27,92 +28,13 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+#define TCF_CSV_READ /* tcf_csv_read */
 #include "tcf_csv.h"
 #include "tcf_filter.h"
 
-#define LINE_MAX_CHARS 8192
-#define N_DIAG (TCF_N_PRED + 2)
+#define N_DIAG (TCF_N_PRED + 3)
 
 static const char *class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
-
-/* Read a CSV file with a header line whose column count is one of allowed[0..n_allowed-1]
-   into *rows (stride = the largest allowed count; missing columns are 0). Returns 0 on
-   success (*n_rows, *n_cols set) or 1 after printing an error naming the file and line. */
-static int read_csv(const char *path, const int *allowed, int n_allowed, const char *expected, float **rows,
-                    long *n_rows, int *n_cols) {
-  char line[LINE_MAX_CHARS];
-  long lineno = 1, n = 0, cap = 0;
-  int stride = 0, i, k, ok = 0;
-  float *x = NULL;
-  FILE *fin = fopen(path, "r");
-  if (!fin) return tcf_csv_fail("tcf_harness", path, 0, "cannot open:", strerror(errno));
-  if (!fgets(line, sizeof line, fin)) {
-    fclose(fin);
-    return tcf_csv_fail("tcf_harness", path, 0, "empty file: expected a header line such as", expected);
-  }
-  tcf_csv_strip_eol(line);
-  *n_cols = tcf_csv_count_fields(line);
-  for (i = 0; i < n_allowed; ++i) {
-    if (allowed[i] == *n_cols) ok = 1;
-    if (allowed[i] > stride) stride = allowed[i];
-  }
-  if (!ok) {
-    char msg[160];
-    sprintf(msg, "header has %d columns, expected %s; header:", *n_cols, expected);
-    fclose(fin);
-    return tcf_csv_fail("tcf_harness", path, 1, msg, line);
-  }
-  while (fgets(line, sizeof line, fin)) {
-    const char *b;
-    float *row;
-    ++lineno;
-    if (strchr(line, '\n') == NULL && !feof(fin)) {
-      fclose(fin);
-      free(x);
-      return tcf_csv_fail("tcf_harness", path, lineno, "line too long", NULL);
-    }
-    tcf_csv_strip_eol(line);
-    if (line[0] == '\0') continue;  /* blank lines (e.g. at the end) */
-    if (tcf_csv_count_fields(line) != *n_cols) {
-      char msg[64];
-      sprintf(msg, "expected %d fields, got %d:", *n_cols, tcf_csv_count_fields(line));
-      fclose(fin);
-      free(x);
-      return tcf_csv_fail("tcf_harness", path, lineno, msg, line);
-    }
-    if (n == cap) {
-      float *grown;
-      cap = cap ? 2 * cap : 4096;
-      grown = (float *)realloc(x, sizeof(float) * (size_t)stride * (size_t)cap);
-      if (!grown) {
-        fclose(fin);
-        free(x);
-        return tcf_csv_fail("tcf_harness", path, lineno, "out of memory", NULL);
-      }
-      x = grown;
-    }
-    row = x + (long)stride * n;
-    b = line;
-    for (k = 0; k < *n_cols; ++k) {
-      const char *e = strchr(b, ',');
-      if (!e) e = b + strlen(b);
-      if (!tcf_csv_parse_field(b, e, row + k)) {
-        char msg[64];
-        sprintf(msg, "column %d is not a number:", k + 1);
-        fclose(fin);
-        free(x);
-        return tcf_csv_fail("tcf_harness", path, lineno, msg, line);
-      }
-      b = *e ? e + 1 : e;
-    }
-    for (; k < stride; ++k) row[k] = 0.0f;
-    ++n;
-  }
-  fclose(fin);
-  *rows = x;
-  *n_rows = n;
-  return 0;
-}
 
 int main(int argc, char **argv) {
   static const int imu_cols[2] = {6, 9}, pred_cols[1] = {TCF_N_PRED};
@@ -147,12 +69,12 @@ int main(int argc, char **argv) {
     return 2;
   }
 
-  if (read_csv(in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
+  if (tcf_csv_read("tcf_harness", in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
                &x, &n, &n_cols))
     return 1;
   if (n_cols == 6) no_mag = 1;
   if (pred_path) {
-    if (read_csv(pred_path, pred_cols, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", &px,
+    if (tcf_csv_read("tcf_harness", pred_path, pred_cols, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", &px,
                  &n_pred, &n_pcols)) {
       free(x);
       return 1;
@@ -187,7 +109,7 @@ int main(int argc, char **argv) {
     else
       tcf_filter_update(&f, r, r + 3, no_mag ? NULL : r + 6);
     tcf_filter_quat(&f, qo + 4 * s);
-    if (ffeat && !px && f.n_filled == TCF_WINDOW && f.hop_phase == 1u % TCF_HOP) {  /* a window end */
+    if (ffeat && !px && f.feat.n_filled == TCF_WINDOW && f.feat.hop_phase == 1u % TCF_HOP) {  /* a window end */
       float feat[TCF_N_FEATURES];
       tcf_filter_features(&f, feat);
       fprintf(ffeat, "%ld", s);
@@ -199,6 +121,7 @@ int main(int argc, char **argv) {
       tcf_filter_prediction(&f, d);
       d[TCF_N_PRED] = f.alpha_acc;
       d[TCF_N_PRED + 1] = f.alpha_mag;
+      d[TCF_N_PRED + 2] = (float)tcf_features_fallback(&f.feat);
     }
   }
   t1 = clock();
@@ -218,7 +141,7 @@ int main(int argc, char **argv) {
   fputs("w,x,y,z", fout);
   if (diag) {
     for (k = 0; k < TCF_N_CLASSES; ++k) fprintf(fout, ",p_%s", class_names[k]);
-    fputs(",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,alpha_acc,alpha_mag", fout);
+    fputs(",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,alpha_acc,alpha_mag,fallback", fout);
   }
   fputc('\n', fout);
   for (s = 0; s < n; ++s) {

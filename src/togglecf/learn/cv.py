@@ -18,6 +18,7 @@ from togglecf.learn.dataset import WindowData
 from togglecf.learn.fitting import fit_all, score_fold
 from togglecf.learn.folds import window_group_folds
 from togglecf.learn.models import ModelBundle, classification_metrics, regression_metrics
+from togglecf.learn.ranges import feature_ranges
 from togglecf.parallel.backend import InlineBackend
 
 __all__ = ["cross_validate", "cv_fold", "format_cv_table"]
@@ -31,7 +32,10 @@ def cv_fold(cfg, data: WindowData, i, train_g, test_g, schema, class_names):
     t0 = time.perf_counter()
     clf, regs = fit_all(cfg, data, train_rows, schema, class_names)
     res, preds = score_fold(clf, regs, data, train_rows, test_rows, schema, len(class_names))
-    oof_models = CompiledModels.from_bundle(ModelBundle(clf, regs, schema, {}))
+    # the fold's models as the filter runs them: with the out-of-range fallback of the range of every window of its
+    # training trials (the filter meets all of them, not only those with valid RANSAC-inlier targets)
+    ranges = feature_ranges(data.X[np.isin(data.group, train_g)], schema.names, cfg["run"]["max_out_of_range"])
+    oof_models = CompiledModels.from_bundle(ModelBundle(clf, regs, schema, {"feature_ranges": ranges}))
     oof = {}
     for g in test_g:
         rows_g = np.flatnonzero(data.group == g)

@@ -11,7 +11,7 @@ from togglecf.features.windows import FeatureSettings, trial_features, window_le
 from togglecf.learn.labels import LabelSettings, make_targets
 from togglecf.parallel.backend import InlineBackend
 
-__all__ = ["WindowData", "trial_windows", "build_dataset", "dataset_settings"]
+__all__ = ["WindowData", "trial_windows", "build_dataset", "dataset_settings", "common_rate"]
 
 
 @dataclass
@@ -27,8 +27,8 @@ class WindowData:
     group: np.ndarray
     end: np.ndarray
     trials: list
-    window_samples: int
-    fs: float
+    window_samples: int | None  # None when the trials' rates differ (windows are in seconds)
+    fs: float | None  # the trials' common rate [Hz]; None when they differ (each trial's in ``per_trial``)
     per_trial: dict = field(default_factory=dict)
     settings: dict = field(default_factory=dict)  # label/feature settings and RANSAC it was built with
 
@@ -45,8 +45,13 @@ class WindowData:
         rows = rows[np.argsort(remap[self.group[rows]], kind="stable")]
         arrays = {k: getattr(self, k)[rows] for k in ("X", "state", "eta_acc", "eta_mag", "train_mask", "eval_mask",
                                                        "end")}
-        return WindowData(**arrays, group=remap[self.group[rows]], trials=names, window_samples=self.window_samples,
-                          fs=self.fs, per_trial={n: self.per_trial[n] for n in names}, settings=self.settings)
+        per_trial = {n: self.per_trial[n] for n in names}
+        fs = common_rate([p.get("fs", self.fs) for p in per_trial.values()])
+        window_s = self.settings.get("features", {}).get("window_s")
+        window_samples = self.window_samples if fs == self.fs else (
+            window_length(fs, window_s) if fs is not None and window_s is not None else None)
+        return WindowData(**arrays, group=remap[self.group[rows]], trials=names, window_samples=window_samples,
+                          fs=fs, per_trial=per_trial, settings=self.settings)
 
 
 def trial_windows(index: DatasetIndex, name, label_settings, feature_settings, ransac):
@@ -60,7 +65,7 @@ def trial_windows(index: DatasetIndex, name, label_settings, feature_settings, r
     part = dict(X=X, state=t.state[ends], eta_acc=t.eta_acc[ends], eta_mag=t.eta_mag[ends],
                 train_mask=valid & inl if ransac else valid, eval_mask=valid & inl, end=ends)
     counts = np.bincount(t.state[t.valid], minlength=len(t.state_names))
-    info = {"n_samples": trial.n_samples, "valid_fraction": float(t.valid.mean()),
+    info = {"n_samples": trial.n_samples, "fs": float(trial.fs), "valid_fraction": float(t.valid.mean()),
             "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
             "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
             "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
@@ -81,19 +86,24 @@ def build_dataset(index: DatasetIndex, names, label_settings: LabelSettings, fea
         done[o.key] = o.value
     parts = []
     per_trial = {}
-    fs0 = None
     for g, name in enumerate(names):
-        part, info, fs = done[g]
-        if fs0 is None:
-            fs0 = fs
-        elif abs(fs - fs0) > 1e-6 * fs0:
-            raise ValueError(f"{name}: sampling rate {fs} Hz differs from {fs0} Hz of the other trials")
+        part, info, _ = done[g]
         parts.append({**part, "group": np.full(len(part["end"]), g)})
         per_trial[name] = info
     cat = {k: np.concatenate([p[k] for p in parts]) for k in ("X", "state", "eta_acc", "eta_mag", "train_mask",
                                                               "eval_mask", "group", "end")}
-    return WindowData(**cat, trials=list(names), window_samples=window_length(fs0, feature_settings.window_s),
-                      fs=fs0, per_trial=per_trial, settings=dataset_settings(label_settings, feature_settings, ransac))
+    # trials at different rates mix freely: windows, hops and every feature are in seconds (features.windows)
+    fs = common_rate([p["fs"] for p in per_trial.values()])
+    return WindowData(**cat, trials=list(names), window_samples=None if fs is None else window_length(fs, feature_settings.window_s),
+                      fs=fs, per_trial=per_trial, settings=dataset_settings(label_settings, feature_settings, ransac))
+
+
+def common_rate(rates) -> float | None:
+    """The one sampling rate [Hz] of ``rates`` (equal to 1 ppm), or None when they differ."""
+    rates = [float(r) for r in rates]
+    if rates and all(abs(r - rates[0]) <= 1e-6 * rates[0] for r in rates):
+        return rates[0]
+    return None
 
 
 def dataset_settings(label_settings, feature_settings, ransac) -> dict:

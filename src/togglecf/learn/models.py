@@ -35,8 +35,9 @@ __all__ = ["MotionClassifier", "NoiseRegressor", "ModelBundle", "save_bundle", "
 
 AXES = ("x", "y", "z")
 #: ``metadata.json`` ``bundle_format``: 2 adds ``sampling_rates`` (Hz, of the training trials) and
-#: goes with ``gains.json`` format 2 (time constants, ``toggling.gains.GAINS_FORMAT``); 1: per-sample gains
-BUNDLE_FORMAT = 2
+#: goes with ``gains.json`` format 2 (time constants, ``toggling.gains.GAINS_FORMAT``); 1: per-sample gains;
+#: 3 adds ``feature_ranges`` (``learn.ranges``: the training range of each feature and the fallback threshold)
+BUNDLE_FORMAT = 3
 
 # OpenMP threads that spin while waiting make XGBoost ~9x slower (measured: 6.8 s vs 0.8 s for
 # 20 trees) when the machine's cores are shared with other work; sleeping waits avoid that. Only
@@ -189,6 +190,7 @@ class ModelBundle:
         self.regressors = regressors
         self.schema = schema
         self.metadata = metadata
+        self.path = None  # the directory it was loaded from (``load_bundle``)
 
     def check_schema(self, schema: FeatureSchema):
         self.schema.check(schema, "model bundle")
@@ -254,7 +256,9 @@ def load_bundle(model_dir, expected_schema: FeatureSchema | None = None) -> Mode
         r.boosters_ = [boosters[f"{target}_{ax}.ubj"] for ax in AXES]
         r.n_features_in_ = len(schema.names)
         regs[target] = r
-    return ModelBundle(clf, regs, schema, meta)
+    bundle = ModelBundle(clf, regs, schema, meta)
+    bundle.path = d
+    return bundle
 
 
 # ----------------------------------------------------------------------------------------- metrics

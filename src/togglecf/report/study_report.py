@@ -37,7 +37,8 @@ LABELS = {"vqf_toggling": "VQF core + learned time constants (models in the loop
 #: filters drawn in ``error_<trial>.png`` (back to front) and, in this order, in ``groups.png``
 ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling", "vqf_toggling")
 ABLATION_ROWS = ("vqf_core_defaults", "vqf_taus_only", "vqf_toggling", "vqf_oracle", "toggling", "toggling_only",
-                 "noise_only", "ransac_off", "toggling_6d", "cf_6d", "madgwick_6d", "vqf_6d")
+                 "noise_only", "ransac_off", "vqf_toggling_6d", "vqf_core_defaults_6d", "toggling_6d", "cf_6d",
+                 "madgwick_6d", "vqf_6d")
 #: what each ablation row is
 ABLATION_LABELS = {"vqf_core_defaults": "VQF core alone (learning off)",
                    "vqf_taus_only": "VQF core + learned time constants (no noise removal)",
@@ -45,10 +46,13 @@ ABLATION_LABELS = {"vqf_core_defaults": "VQF core alone (learning off)",
                    "vqf_oracle": "VQF core + time constants learned and driven by the TRUE motion state (oracle)",
                    "toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
                    "noise_only": "noise removal only (one gain, no rest bias)", "ransac_off": "both, models without RANSAC",
+                   "vqf_toggling_6d": "VQF core + learned time constants, 6D (its own 6D gains)",
+                   "vqf_core_defaults_6d": "VQF core alone, 6D (learning off)",
                    "toggling_6d": "both, 6D", "cf_6d": "fixed CF, 6D", "madgwick_6d": "Madgwick, 6D", "vqf_6d": "VQF, 6D"}
 #: paired per-trial comparisons in the summary: (filter, other)
 PAIRS = (("vqf_toggling", "vqf"), ("vqf_toggling", "vqf_core"), ("vqf_toggling", "vqf_core_defaults"),
-         ("vqf_toggling", "madgwick"), ("toggling", "vqf"), ("toggling", "madgwick"))
+         ("vqf_toggling", "madgwick"), ("vqf_toggling_6d", "vqf_6d"), ("vqf_toggling_6d", "vqf_core_defaults_6d"),
+         ("toggling", "vqf"), ("toggling", "madgwick"))
 #: |difference| [deg] of a trial's total RMSE below which the pair counts as a tie on that trial
 TIE_DEG = 0.01
 

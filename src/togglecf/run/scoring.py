@@ -19,7 +19,9 @@ __all__ = ["TrialResult", "run_filter", "score_trial", "score_trials", "warm_up"
 
 @dataclass
 class TrialResult:
-    """Scores of one filter on one trial: BROAD RMSEs [deg] and speed [µs per sample]."""
+    """Scores of one filter on one trial: BROAD RMSEs [deg] and speed [µs per sample]; ``diagnostics``:
+    run summaries of a learned filter (``fallback``: fraction of the scored samples whose held
+    prediction was refused as out of the training range, ``learn.ranges``)."""
 
     trial: str
     groups: tuple
@@ -27,6 +29,7 @@ class TrialResult:
     us_per_sample: float
     n_samples: int
     params: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
 
 
 _WARM: set = set()
@@ -61,7 +64,18 @@ def score_trial(trial: Trial, spec: FilterSpec) -> tuple[TrialResult, FilterOutp
     """BROAD's errors of ``spec`` on ``trial`` (6D: heading offset removed) and the output itself."""
     out, us = run_filter(trial, spec)
     errs = trial_errors(out.quat, trial.opt_quat, trial.movement, six_d=not spec.use_mag)
-    return TrialResult(trial.name, trial.groups, errs, us, trial.n_samples, spec.as_params()), out
+    return TrialResult(trial.name, trial.groups, errs, us, trial.n_samples, spec.as_params(),
+                       run_diagnostics(out, trial)), out
+
+
+def run_diagnostics(out: FilterOutput, trial: Trial) -> dict:
+    """Summaries of a run over the samples BROAD scores (``movement``): the fallback fraction of a
+    filter with its models in the loop (``fallback`` diagnostic); empty for other filters."""
+    if "fallback" not in out.diagnostics:
+        return {}
+    scored = np.asarray(trial.movement, bool)
+    fb = np.asarray(out.diagnostics["fallback"])[scored]
+    return {"fallback": float(fb.mean()) if fb.size else float("nan")}
 
 
 def score_trials(trials, spec: FilterSpec) -> list[tuple[TrialResult, FilterOutput]]:

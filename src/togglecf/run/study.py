@@ -212,7 +212,8 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     timelines = {}
     fold_info = []
     train_cfg = load_config(cfg.train_config)
-    train_cfg["gains"].update(learn=True, modes=(["9d", "6d"] if "6d" in cfg.ablations else ["9d"]) + ["vqf_9d"])
+    six_d = "6d" in cfg.ablations
+    train_cfg["gains"].update(learn=True, modes=(["9d", "6d", "vqf_9d", "vqf_6d"] if six_d else ["9d", "vqf_9d"]))
     train_cfg["run"]["cv_folds"] = cfg.inner_folds
     for k, test in enumerate(folds):
         train = [n for n in names if n not in test]
@@ -249,6 +250,11 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
             rows.append({"trial": r.trial, "filter": "vqf_toggling", "fold": k, "us_per_sample": r.us_per_sample,
                          **r.errors})
             series[r.trial]["vqf_toggling"] = _errors_series(o.quat, loaded[r.trial])
+        if six_d:  # the same learned filter in 6D: its own gains (vqf_6d), heading offset removed in the errors
+            for r, _ in score_trials([loaded[n] for n in test], FilterSpec(VQF_TOGGLING, models=model_dir,
+                                                                           use_mag=False)):
+                rows.append({"trial": r.trial, "filter": "vqf_toggling_6d", "fold": k, "us_per_sample": r.us_per_sample,
+                             **r.errors})
         _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, info, train_cfg, index, out)
         for filt, (keys, res) in grids9.items():
             i, params, train_err = _tagp_on(train, keys, res)
@@ -274,14 +280,15 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
         fold_info.append(info)
 
     for n in names:  # the VQF core (ours, from the paper) at VQF's defaults: the learned filter without learning
-        r, o = score_trial(loaded[n], FilterSpec("vqf_core"))
-        rows.append({"trial": n, "filter": "vqf_core_defaults", "fold": -1, "us_per_sample": r.us_per_sample,
-                     **r.errors})
+        for use_mag in (True, False) if six_d else (True,):
+            r, o = score_trial(loaded[n], FilterSpec("vqf_core", use_mag=use_mag))
+            rows.append({"trial": n, "filter": "vqf_core_defaults" + ("" if use_mag else "_6d"), "fold": -1,
+                         "us_per_sample": r.us_per_sample, **r.errors})
 
     try:  # VQF: the external state of the art, at its defaults
         for n in names:
             t = loaded[n]
-            for use_mag in (True, False) if "6d" in cfg.ablations else (True,):
+            for use_mag in (True, False) if six_d else (True,):
                 q, us = _vqf(t, use_mag)
                 rows.append({"trial": n, "filter": "vqf" if use_mag else "vqf_6d", "fold": -1, "us_per_sample": us,
                              **trial_errors(q, t.opt_quat, t.movement, six_d=not use_mag)})

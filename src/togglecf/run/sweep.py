@@ -170,7 +170,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
             if k in store.done:
                 rec = store.done[k]
                 got[nk] = TrialResult(rec["trial"], tuple(rec["groups"]), rec["errors"], rec["us_per_sample"],
-                                      rec["n_samples"], dict(params_list[nk[1]]))
+                                      rec["n_samples"], dict(params_list[nk[1]]), rec.get("diagnostics", {}))
                 if rec.get("invalid") is not None:
                     invalid[nk[0]] = rec["invalid"]
         reused = len(got)
@@ -202,7 +202,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
                 recs.append({"key": keys[(name, i)], "trial": name, "filter": filter_name, "use_mag": use_mag,
                              "params": params_list[i], "trial_file": ids[name], "groups": list(r.groups),
                              "errors": r.errors, "us_per_sample": r.us_per_sample, "n_samples": r.n_samples,
-                             "invalid": invalid[name]})
+                             "diagnostics": r.diagnostics, "invalid": invalid[name]})
             computed += len(idx)
             if store is not None:
                 store.write(recs)

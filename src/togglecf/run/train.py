@@ -29,6 +29,7 @@ from togglecf.learn.dataset import WindowData, build_dataset, dataset_settings
 from togglecf.learn.fitting import fit_all, importances_csv
 from togglecf.learn.labels import LABEL_FIELDS, LabelSettings, missing_label_field, state_names
 from togglecf.learn.models import save_bundle
+from togglecf.learn.ranges import feature_ranges
 from togglecf.parallel.backend import InlineBackend, make_backend
 from togglecf.run.config import GAIN_KEYS, load_config
 from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_gains
@@ -155,12 +156,15 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     timing["total_s"] = time.perf_counter() - t_start
     metadata = {
         "run_name": run["name"], "created_by": "togglecf train", "seed": run["seed"],
+        # the training trials' common rate [Hz] (None when they differ); the models and the gains in gains.json
+        # are in seconds, so they apply at any rate
         "sampling_rate": data.fs,
-        # the training trials' rates [Hz] (bundle_format 2); the gains in gains.json are time constants [s]
         "sampling_rates": sorted({round(float(p.get("fs", data.fs)), 6) for p in data.per_trial.values()}),
         "window": {"window_s": feature_settings.window_s, "hop_s": feature_settings.hop_s,
-                                             "window_samples": data.window_samples,
-                                             "hop_samples": int(max(1, round(feature_settings.hop_s * data.fs)))},
+                   "window_samples": data.window_samples,
+                   "hop_samples": None if data.fs is None else int(max(1, round(feature_settings.hop_s * data.fs)))},
+        # every window of the training trials (the filter meets all of them, not only the valid RANSAC inliers)
+        "feature_ranges": feature_ranges(data.X, schema.names, run["max_out_of_range"]),
         "label_settings": label_settings.to_dict(), "ransac": label_settings.ransac,
         "training_trials": names, "n_training_windows": int(len(rows)), "data_dir": _data_dir_meta(index),
         "data_files": {n: {"file": p["file"], "sha256": p["sha256"]} for n, p in data.per_trial.items()},

@@ -14,6 +14,7 @@ from togglecf.filters.base import FilterOutput
 from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
+from togglecf.learn.ranges import window_out_of_range
 from togglecf.learn.trees import predict_margin_row
 
 __all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "inloop_step", "inloop_batch"]
@@ -24,15 +25,23 @@ __all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "inl
 @njit(cache=False)
 def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                feat, margin, pred):
+                feat, margin, pred, low, high, max_out_of_range, fallback):
     """One sample with the models in the loop: push features; at a window end (every ``hop``
     samples once the window is full) evaluate the trees into ``pred`` (held until the next
-    hop); then the filter's ``step`` with that prediction."""
+    hop), or, when the window's features are out of the training range (``learn.ranges``),
+    set ``pred`` to NaN (no prediction: the filter's default) and ``fallback[0]`` to 1; then the
+    filter's ``step`` with that prediction."""
     push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
     L = ring.shape[0]
     count = int(aux[0])
     if count >= L and (count - L) % hop == 0:
         window_features(ring, aux, feat)
+        if window_out_of_range(feat, low, high, max_out_of_range):
+            fallback[0] = 1.0
+            pred[:] = math.nan
+            step(state, params, gyr, acc, mag, dt, pred, diag)
+            return
+        fallback[0] = 0.0
         predict_margin_row(feat, feature, threshold, left, right, default_left, value, roots, tree_group,
                            base_margin, margin)
         mx = margin[0]
@@ -52,16 +61,17 @@ def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams
 @njit(cache=False)
 def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
                  feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                 feat, margin, pred, quat_out, diag_out, pred_out):
+                 feat, margin, pred, low, high, max_out_of_range, fallback, quat_out, diag_out, pred_out, fallback_out):
     for i in range(gyr.shape[0]):
         inloop_step(step, state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
                     n_classes, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                    feat, margin, pred)
+                    feat, margin, pred, low, high, max_out_of_range, fallback)
         quat_out[i, 0] = state[0]
         quat_out[i, 1] = state[1]
         quat_out[i, 2] = state[2]
         quat_out[i, 3] = state[3]
         pred_out[i] = pred
+        fallback_out[i] = fallback[0]
 
 
 class InLoopModels:
@@ -69,8 +79,9 @@ class InLoopModels:
     ``ModelTogglingFilter(fs, settings, models=CompiledModels.from_bundle(load_bundle(dir)))``.
 
     ``update``/``update_batch`` take only IMU samples; the diagnostics add the predictions
-    (``p_<state>``, ``eta_acc_x`` ...). The full state (filter + feature window + held
-    prediction) is saved and restored by ``get_state``/``set_state``.
+    (``p_<state>``, ``eta_acc_x`` ...) and ``fallback`` (1 while the held window was out of the
+    training range, ``learn.ranges``). The full state (filter + feature window + held
+    prediction + fallback flag) is saved and restored by ``get_state``/``set_state``.
     """
 
     def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
@@ -100,6 +111,7 @@ class InLoopModels:
         self.pred = np.full(self.n_predictions, np.nan)  # no prediction before the first full window
         self._feat = np.empty(N_FEATURES)
         self._margin = np.empty(self.n_predictions)
+        self.fallback = np.zeros(1)  # 1 while the held window is out of the training range
 
     def reset(self):
         super().reset()
@@ -107,22 +119,24 @@ class InLoopModels:
             self._reset_model_state()
 
     def get_state(self) -> np.ndarray:
-        return np.concatenate([self.state, self._features.aux, self._features.ring.ravel(), self.pred])
+        return np.concatenate([self.state, self._features.aux, self._features.ring.ravel(), self.pred, self.fallback])
 
     def set_state(self, state):
         state = np.asarray(state, np.float64)
-        sizes = [self.state.size, N_AUX, self._features.ring.size, self.pred.size]
+        sizes = [self.state.size, N_AUX, self._features.ring.size, self.pred.size, 1]
         if state.shape != (sum(sizes),):
             raise ValueError(f"{type(self).__name__}: state must have shape ({sum(sizes)},), got {state.shape}")
-        a, b, c = np.cumsum(sizes)[:3]
+        a, b, c, d = np.cumsum(sizes)[:4]
         self.state[:] = state[:a]
         self._features.aux[:] = state[a:b]
         self._features.ring[:] = state[b:c].reshape(self._features.ring.shape)
-        self.pred[:] = state[c:]
+        self.pred[:] = state[c:d]
+        self.fallback[:] = state[d:]
 
     def _model_args(self):
         return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
-                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred)
+                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred,
+                self.models.feature_low, self.models.feature_high, self.models.max_out_of_range, self.fallback)
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
         if prediction is not None:
@@ -140,12 +154,15 @@ class InLoopModels:
         quat_out = np.empty((n, 4))
         diag_out = np.zeros((n, len(self.diagnostic_names)))
         pred_out = np.empty((n, self.n_predictions))
-        inloop_batch(type(self).step, self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out, pred_out)
+        fallback_out = np.empty(n)
+        inloop_batch(type(self).step, self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out,
+                     pred_out, fallback_out)
         if n:
             self._diag[:] = diag_out[-1]
         diags = {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)}
         names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
         diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
+        diags["fallback"] = fallback_out
         return FilterOutput(quat_out, diags)
 
 

@@ -1,0 +1,227 @@
+/* tcf_features.c: streaming features, range check and trees of togglecf in C99, float32 (API in
+ * tcf_features.h); shared by tcf_filter.c and tcf_vqf_toggling.c.
+ *
+ * Line-by-line port of (togglecf/...):
+ *   features/streaming.py  push_sample, window_features -> tcf_push_sample, tcf_window_features
+ *   learn/ranges.py        window_out_of_range          -> tcf_out_of_range
+ *   toggling/inloop.py     inloop_step (the model part)  -> tcf_features_push
+ */
+#include <math.h>
+#include <stddef.h>
+#include "tcf_features.h"
+
+#if defined(__FAST_MATH__)
+#error "tcf_features.c must not be compiled with -ffast-math: the missing-value (NaN) tests would be removed"
+#endif
+
+/* compile-time checks of the documented state size and the feature count (C99: a negative array
+   size is an error) */
+typedef char tcf_features_bytes_check[(sizeof(tcf_features_t) == TCF_FEATURES_STATE_BYTES) ? 1 : -1];
+typedef char tcf_n_features_check[(TCF_N_FEATURES == 4 * (TCF_RING_COLS - 1) + 1 + TCF_N_LAST) ? 1 : -1];
+
+/* ------------------------------------------------------------------ streaming_features.py */
+
+/* Exponential moving average r <- lam r + (1 - lam) x = r + c (x - r), c = 1 - lam, kept as an
+   unevaluated sum hi + lo (compensated, as Kahan summation). A plain float32 EMA with c ~ 3.5e-4
+   loses up to half an ulp of r per sample against c (x - r) (a dead band of up to
+   ulp(r) / (2 c), ~5e-3 uT at |m| ~ 50 uT); measured on BROAD trial 05 the plain form puts
+   mag_norm_dev up to 1.4e-4 uT off the float64 reference, hi + lo 5e-6 uT (dip_dev 3.6e-6 vs
+   1.2e-6 rad, acc_hp 8.8e-6 vs 6.1e-7 m/s^2). Costs 5 floats of state. */
+static void ema_update(float *hi, float *lo, float c, float x) {
+  float y = *lo + c * ((x - *hi) - *lo);  /* the amount to add to hi */
+  float t = *hi + y;
+  float yv = t - *hi;
+  *lo = (*hi - (t - yv)) + (y - yv);  /* exact rounding error of hi + y (TwoSum) */
+  *hi = t;
+}
+
+/* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
+   0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8-10 mag, 11 |mag|, 12 jerk, 13 mag_norm_dev,
+   14 dip_dev, 15 |gyr|^2 (gyr_energy). */
+static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  float *row = f->ring[f->pos];
+  float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];
+  float an = sqrtf(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]);
+  float mn = sqrtf(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]);
+  float cosang = an * mn > 0.0f ? (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) : 0.0f;
+  float dip, jerk, c;
+  int i;
+  if (!isfinite(cosang)) cosang = 0.0f;  /* nan_to_num, as the vectorised version */
+  c = -cosang;
+  c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
+  dip = asinf(c);
+  if (f->n_filled == 0) {  /* EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
+    f->ref_mag = mn;
+    f->ref_dip = dip;
+    f->ref_mag_lo = 0.0f;
+    f->ref_dip_lo = 0.0f;
+    for (i = 0; i < 3; ++i) {
+      f->acc_lp[i] = acc[i];
+      f->acc_lp_lo[i] = 0.0f;
+      f->prev_acc[i] = acc[i];
+    }
+    jerk = 0.0f;
+  } else {
+    float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
+    jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
+  }
+  row[0] = gyr[0]; row[1] = gyr[1]; row[2] = gyr[2];
+  row[3] = sqrtf(gn2);
+  row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
+  row[7] = an - TCF_GRAVITY;
+  row[8] = mag[0]; row[9] = mag[1]; row[10] = mag[2];
+  row[11] = mn;
+  row[12] = jerk;
+  row[13] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
+  row[14] = (dip - f->ref_dip) - f->ref_dip_lo;
+  row[15] = gn2;
+  /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_x/y/z, mag_norm_dev, dip_dev, acc_hp_x/y/z */
+  f->last[0] = row[3];
+  f->last[1] = row[4]; f->last[2] = row[5]; f->last[3] = row[6];
+  f->last[4] = row[7];
+  f->last[5] = row[8]; f->last[6] = row[9]; f->last[7] = row[10];
+  f->last[8] = row[13];
+  f->last[9] = row[14];
+  for (i = 0; i < 3; ++i) f->last[10 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
+  /* update the references with sample k, only from finite values; a reference that is not
+     finite yet (the first samples were bad) starts at the first finite sample */
+  if (isfinite(mn) && isfinite(dip)) {
+    if (isfinite(f->ref_mag) && isfinite(f->ref_dip)) {
+      ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
+      ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
+    } else {
+      f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
+    }
+  }
+  if (isfinite(an)) {
+    if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
+      for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
+    } else {
+      for (i = 0; i < 3; ++i) { f->acc_lp[i] = acc[i]; f->acc_lp_lo[i] = 0.0f; }
+    }
+  }
+  /* jerk next to a bad sample is missing, as in togglecf.features */
+  f->prev_acc[0] = acc[0]; f->prev_acc[1] = acc[1]; f->prev_acc[2] = acc[2];
+  if (f->n_filled < TCF_WINDOW) f->n_filled++;
+  f->pos = (f->pos + 1u) % TCF_WINDOW;
+}
+
+/* Feature row of the window ending at the last pushed sample (window_features): mean, std,
+   min, max of ring columns 0-14, mean of column 15, then the 13 *_last values. A column with a
+   non-finite value in the window gives NaN (missing) stats, as the numba and vectorised code. */
+static void tcf_window_features(const tcf_features_t *f, float out[TCF_N_FEATURES]) {
+  int c, i, j;
+  float e = 0.0f;
+  for (c = 0; c < TCF_RING_COLS - 1; ++c) {
+    float s = 0.0f, ss = 0.0f, lo = f->ring[0][c], hi = f->ring[0][c], mean;
+    for (i = 0; i < TCF_WINDOW; ++i) {
+      float v = f->ring[i][c];
+      s += v;
+      if (v < lo) lo = v;
+      if (v > hi) hi = v;
+    }
+    if (!isfinite(s)) {  /* a non-finite value in the window: this channel's stats are missing */
+      out[4 * c] = out[4 * c + 1] = out[4 * c + 2] = out[4 * c + 3] = NAN;
+      continue;
+    }
+    mean = s / (float)TCF_WINDOW;
+    for (i = 0; i < TCF_WINDOW; ++i) {
+      float d = f->ring[i][c] - mean;
+      ss += d * d;
+    }
+    out[4 * c] = mean;
+    out[4 * c + 1] = sqrtf(ss / (float)TCF_WINDOW);
+    out[4 * c + 2] = lo;
+    out[4 * c + 3] = hi;
+  }
+  for (i = 0; i < TCF_WINDOW; ++i) e += f->ring[i][TCF_RING_COLS - 1];
+  out[4 * (TCF_RING_COLS - 1)] = isfinite(e) ? e / (float)TCF_WINDOW : NAN;
+  for (j = 0; j < TCF_N_LAST; ++j) out[4 * (TCF_RING_COLS - 1) + 1 + j] = f->last[j];
+}
+
+/* ------------------------------------------------------------------ learn/ranges.py */
+
+#if TCF_N_BOUNDED > 0
+/* the features with finite training bounds (0.5 % / 99.5 % quantiles, rounded to float32): their
+   indices (TCF_BOUNDED_INIT; left out of tcf_config.h when every feature is bounded) and bounds */
+#ifdef TCF_BOUNDED_INIT
+static const uint8_t tcf_bounded[TCF_N_BOUNDED] = TCF_BOUNDED_INIT;
+typedef char tcf_bounded_index_check[(TCF_N_FEATURES <= 256) ? 1 : -1];
+#define TCF_BOUNDED(j) tcf_bounded[j]
+#else
+typedef char tcf_bounded_all_check[(TCF_N_BOUNDED == TCF_N_FEATURES) ? 1 : -1];
+#define TCF_BOUNDED(j) (j)
+#endif
+static const float tcf_low[TCF_N_BOUNDED] = TCF_FEATURE_LOW_INIT;
+static const float tcf_high[TCF_N_BOUNDED] = TCF_FEATURE_HIGH_INIT;
+
+/* window_out_of_range: more than TCF_MAX_OUT (= floor(max_out_of_range * TCF_N_BOUNDED)) of the
+   bounded features finite and outside [low, high] (a missing feature is not out of range) */
+static int tcf_out_of_range(const float feat[TCF_N_FEATURES]) {
+  int j, n_out = 0;
+  for (j = 0; j < TCF_N_BOUNDED; ++j) {
+    float v = feat[TCF_BOUNDED(j)];
+    if (isfinite(v) && (v < tcf_low[j] || v > tcf_high[j])) ++n_out;
+  }
+  return n_out > TCF_MAX_OUT;
+}
+#endif
+
+/* ------------------------------------------------------------------ API */
+
+void tcf_features_init(tcf_features_t *f) {
+  int i, j;
+  for (i = 0; i < TCF_WINDOW; ++i)
+    for (j = 0; j < TCF_RING_COLS; ++j) f->ring[i][j] = 0.0f;
+  f->ref_mag = 0.0f;
+  f->ref_dip = 0.0f;
+  f->ref_mag_lo = 0.0f;
+  f->ref_dip_lo = 0.0f;
+  for (j = 0; j < 3; ++j) {
+    f->acc_lp[j] = 0.0f;
+    f->acc_lp_lo[j] = 0.0f;
+    f->prev_acc[j] = 0.0f;
+  }
+  for (j = 0; j < TCF_N_LAST; ++j) f->last[j] = 0.0f;
+  f->n_filled = 0u;
+  f->pos = 0u;
+  f->hop_phase = 0u;
+  for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
+}
+
+/* inloop_step, the model part: push the features; at a window end (every TCF_HOP samples once
+   the window is full) check the range, evaluate the trees into f->pred (held until the next one). */
+int tcf_features_push(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  int renewed = 0;
+  tcf_push_sample(f, gyr, acc, mag);
+  if (f->n_filled == TCF_WINDOW) {
+    if (f->hop_phase == 0u) {
+      float feat[TCF_N_FEATURES], margin[TCF_N_OUTPUTS];
+      int k;
+      tcf_window_features(f, feat);
+#if TCF_N_BOUNDED > 0
+      if (tcf_out_of_range(feat)) {  /* no prediction: the filter's default until the next window end */
+        for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = NAN;
+      } else
+#endif
+      {
+        tcf_predict(feat, margin);
+        tcf_softmax(margin);  /* class margins -> probabilities; eta_a, eta_m stay raw */
+        for (k = 0; k < TCF_N_PRED; ++k) f->pred[k] = margin[k];
+      }
+      renewed = 1;
+    }
+    f->hop_phase = (f->hop_phase + 1u) % TCF_HOP;
+  }
+  return renewed;
+}
+
+int tcf_features_row(const tcf_features_t *f, float feat[TCF_N_FEATURES]) {
+  if (f->n_filled < TCF_WINDOW) return 0;
+  tcf_window_features(f, feat);
+  return 1;
+}
+
+int tcf_features_fallback(const tcf_features_t *f) {
+  return (f->n_filled == TCF_WINDOW && isnan(f->pred[0])) ? 1 : 0;
+}

@@ -1,0 +1,92 @@
+/* tcf_features.h: the models of togglecf in the loop, C99 float32: streaming features and the
+ * tree ensemble, shared by the exported filters (tcf_filter.c: the toggling CF;
+ * tcf_vqf_toggling.c: the VQF core with learned time constants).
+ *
+ * A port of the model part of togglecf.toggling.inloop.inloop_step: per sample, the 16 feature
+ * channels are pushed into a ring buffer of the last TCF_WINDOW samples
+ * (togglecf.features.streaming); at every window end (once the window is full, then every
+ * TCF_HOP samples) the TCF_N_FEATURES window features are checked against their training range
+ * (togglecf.learn.ranges: more than TCF_MAX_OUT of the TCF_N_BOUNDED bounded features outside
+ * -> no prediction, NaN, the filter's default) and otherwise go through the generated tree
+ * ensemble (tcf_forest.c: class margins -> softmax, plus the predicted acc/mag noise eta_a,
+ * eta_m); the prediction is held until the next window end.
+ *
+ * Units: gyr rad/s, acc m/s^2, mag uT (the features use its norm in uT). Non-finite samples
+ * enter the window as NaN (a window holding one gives missing stats of that channel; the trees
+ * follow their default branches) and do not update the EMA references, which start at the
+ * first finite sample.
+ *
+ * Memory: all in tcf_features_t (fixed size, TCF_FEATURES_STATE_BYTES; no heap, no globals
+ * written). At a window end tcf_features_push keeps the feature row and the tree outputs on
+ * the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats). Configuration: tcf_config.h of the export
+ * (TCF_FS, TCF_WINDOW, TCF_HOP, EMA constants, TCF_GRAVITY, the feature ranges).
+ *
+ * Do not compile with -ffast-math (the NaN tests would be removed).
+ */
+#ifndef TCF_FEATURES_H
+#define TCF_FEATURES_H
+
+#include <stdint.h>
+#include "tcf_config.h"
+#include "tcf_forest.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* per-sample channels kept in the ring (togglecf.features.WINDOW_CHANNELS + gyr_energy) */
+#define TCF_RING_COLS 16
+/* channels whose current value is a feature (togglecf.features.LAST_CHANNELS) */
+#define TCF_N_LAST 13
+/* class probabilities, then eta_a xyz [m/s^2], then eta_m xyz [uT] */
+#define TCF_N_PRED (TCF_N_CLASSES + 6)
+
+/* out-of-range fallback (togglecf.learn.ranges), set by the export in tcf_config.h: the number
+   of features with finite training bounds (0: the rule is compiled out) and the most of them
+   that may lie outside while the trees are still trusted */
+#ifndef TCF_N_BOUNDED
+#define TCF_N_BOUNDED 0
+#endif
+#ifndef TCF_MAX_OUT
+#define TCF_MAX_OUT 0
+#endif
+
+typedef struct tcf_features {
+  float ring[TCF_WINDOW][TCF_RING_COLS];
+  float ref_mag, ref_mag_lo;  /* EMA r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_features.c) */
+  float ref_dip, ref_dip_lo;  /* EMA d_{k-1} of the dip angle [rad], hi + lo */
+  float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
+  float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */
+  float last[TCF_N_LAST];  /* the *_last features of the newest sample */
+  uint32_t n_filled;   /* samples in the ring (saturates at TCF_WINDOW) */
+  uint32_t pos;        /* ring row of the next sample */
+  uint32_t hop_phase;  /* samples since the last window end, modulo TCF_HOP */
+  /* held prediction (NaN before the first full window, and after a window out of range) */
+  float pred[TCF_N_PRED];
+} tcf_features_t;
+
+/* sizeof(tcf_features_t): 4-byte members only, no padding (checked at compile time) */
+#define TCF_FEATURES_STATE_BYTES (4 * (35 + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+
+/* Reset: empty window, no prediction. */
+void tcf_features_init(tcf_features_t *s);
+
+/* One sample at TCF_FS (mag: never NULL here; the filters pass zeros without a magnetometer).
+   At a window end the prediction s->pred is renewed (trees, or NaN when out of range);
+   returns 1 then, else 0. */
+int tcf_features_push(tcf_features_t *s, const float gyr[3], const float acc[3], const float mag[3]);
+
+/* Feature row feat[TCF_N_FEATURES] (names: togglecf.features.feature_schema) of the window
+   ending at the last sample. Returns 0 (feat untouched) until the window is full. */
+int tcf_features_row(const tcf_features_t *s, float feat[TCF_N_FEATURES]);
+
+/* 1 when the held prediction is the out-of-range fallback (a window end passed and its features
+   were out of the training range: pred is NaN), else 0 (the Python filter's "fallback"). The
+   trees never give NaN, so this needs no extra state. */
+int tcf_features_fallback(const tcf_features_t *s);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* TCF_FEATURES_H */

@@ -66,9 +66,10 @@ Magnetometer (9D)
 
 Second-order Butterworth LP₂(·; τ): cut-off f_c = √2/(2πτ), bilinear transform with
 pre-warping, C = tan(π f_c Ts): b₀ = b₂ = C²/D, b₁ = 2b₀, a₁ = 2(C² − 1)/D, a₂ = (1 − √2C + C²)/D,
-D = 1 + √2C + C² (direct form II transposed). To not depend on the first sample, each filter
-outputs the running mean of its inputs for its first τ seconds and then starts in the steady
-state of that mean.
+D = 1 + √2C + C², run in a "delta" form (``_lp``: level and increment, the same transfer
+function as VQF's direct form II transposed, whose state would kick the output when the learned
+filter changes τ_acc). To not depend on the first sample, each filter outputs the running mean of
+its inputs for its first τ seconds and then starts in the steady state of that mean.
 
 Bad samples (policy of ``filters.base``): a non-finite/saturated gyro or an invalid Δt skips
 the gyro part (rest LP and timer, strapdown); an invalid accelerometer sample skips the whole
@@ -357,11 +358,23 @@ def _lp_begin(state, off):
 
 @njit(cache=True, inline="always")
 def _lp(state, i, x, ready, n, b0, b1, b2, a1, a2):
-    """One channel (state[i], state[i+1]) of a second-order LP: the output for input ``x``."""
-    if ready:  # direct form II transposed
-        y = b0 * x + state[i]
-        state[i] = b1 * x - a1 * y + state[i + 1]
-        state[i + 1] = b2 * x - a2 * y
+    """One channel (state[i], state[i+1]) = (v, dv) of the second-order LP
+    H(z) = b0 (1 + z⁻¹)² / (1 + a1 z⁻¹ + a2 z⁻²) with unit DC gain: the output for input ``x``.
+
+    Delta form (as the C core, ``embedded/tcf_vqf.c``): with K = 4 b0 = 1 + a1 + a2 and
+    β = 1 − a2, v the level and dv its last increment,
+        dv_k = (1 − β) dv_{k−1} + K (x_k − v_{k−1}),   v_k = v_{k−1} + dv_k,
+        y_k  = v_{k−1} + (dv_k − dv_{k−1}) / 4.
+    The same transfer function as VQF's direct form II transposed, but its state is the
+    signal itself (level and increment), not a coefficient-dependent mix: when the learned
+    filter changes τ_acc between samples (``filters.vqf_toggling``) the output continues
+    smoothly, where the DF2T state run on with new coefficients kicks the output (measured
+    4.2 m/s² on the low-passed gravity for a 3 s -> 1 s switch). ``b1``, ``a1`` are implied."""
+    if ready:
+        dv = a2 * state[i + 1] + 4.0 * b0 * (x - state[i])  # (1 − β) = a2
+        y = state[i] + 0.25 * (dv - state[i + 1])
+        state[i] += dv
+        state[i + 1] = dv
         return y
     state[i] += x  # averaging phase: running sum, output the mean
     return state[i] / n
@@ -369,13 +382,13 @@ def _lp(state, i, x, ready, n, b0, b1, b2, a1, a2):
 
 @njit(cache=True, inline="always")
 def _lp_end(state, off, nch, ready, n, tau, ts, b0, b2, a2):
-    """End of the averaging phase after τ: start each channel in the steady state of its mean."""
+    """End of the averaging phase after τ: start each channel in the steady state of its mean
+    (v = mean, dv = 0)."""
     if (not ready) and n * ts >= tau:
         for c in range(nch):
             i = off + 2 + 2 * c
-            m = state[i] / n
-            state[i] = m * (1.0 - b0)  # y = m, s0 = y − b0 x
-            state[i + 1] = m * (b2 - a2)  # s1 = b2 x − a2 y
+            state[i] = state[i] / n
+            state[i + 1] = 0.0
         state[off + 1] = 1.0
 
 

@@ -55,9 +55,50 @@ def test_fallback_on_nan_and_low_confidence(mini_trial):
     assert np.array_equal(o.quat, VQFCoreFilter(t.fs, s.core_settings).update_batch(t.gyr, t.acc, t.mag).quat)
 
 
+def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
+    """Step 3: k_mag / (1 + (|η̂_m| / σ_m)²) in 9D; σ_m = 0 or 6D: the core's k_mag."""
+    t = mini_trial
+    n = t.n_samples
+    eta = np.zeros((n, 6))
+    eta[:, 3:] = (6.0, 0.0, 8.0)  # |η̂_m| = 10 µT
+    pred = np.hstack([np.tile([1.0, 0.0], (n, 1)), eta])
+    s = VQFTogglingSettings(states=("a", "b"), mag_disturbance_scale=5.0)  # (10/5)² = 4: k / 5
+    on = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
+    off = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=("a", "b"))).update_batch(t.gyr, t.acc, t.mag,
+                                                                                       predictions=pred)
+    k_on, k_off = on.diagnostics["k_mag"], off.diagnostics["k_mag"]
+    # after the start-up phase (M5: k >= 1/N) and where the core's own rejection leaves k alone
+    steady = (np.arange(n) > n // 2) & (k_off > 0) & (k_on > 0) & (off.diagnostics["mag_dist"] == 0) & (
+        on.diagnostics["mag_dist"] == 0)
+    assert steady.sum() > 100
+    np.testing.assert_allclose(k_on[steady], k_off[steady] / 5.0, rtol=1e-12)
+    six = VQFTogglingFilter(t.fs, s, use_mag=False).update_batch(t.gyr, t.acc, None, predictions=pred)
+    six_off = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=("a", "b")), use_mag=False).update_batch(
+        t.gyr, t.acc, None, predictions=pred)
+    assert np.array_equal(six.quat, six_off.quat)  # no magnetometer: nothing to scale
+
+
+def test_rest_thresholds_per_state_change_rest_detection(mini_trial):
+    """A state whose rest thresholds are 5x the core's detects rest on more samples, where the
+    motion makes the deviations from the low-pass exceed the core's thresholds."""
+    t = mini_trial
+    n = t.n_samples
+    pred = np.hstack([np.tile([1.0, 0.0], (n, 1)), np.zeros((n, 6))])
+    core = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=("a", "b"))).update_batch(t.gyr, t.acc, t.mag,
+                                                                                         predictions=pred)
+    loose = VQFTogglingSettings(states=("a", "b"), rest_th_gyr_states=(10.0, 2.0), rest_th_acc_states=(2.5, 0.5))
+    o = VQFTogglingFilter(t.fs, loose).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
+    assert o.diagnostics["rest"].sum() > core.diagnostics["rest"].sum()
+    assert np.all(o.diagnostics["rest"] >= core.diagnostics["rest"])  # looser thresholds never lose a rest sample
+
+
 def test_bounds_keep_every_correction_on():
     with pytest.raises(ValueError, match="may not switch the correction off"):
         VQFTogglingSettings(states=("a", "b"), tau_acc_states=(1.0, TAU_ACC_RANGE[1] * 10))
+    with pytest.raises(ValueError, match="may not switch the correction off"):
+        VQFTogglingSettings(states=("a", "b"), rest_th_gyr_states=(2.0, 50.0))
+    with pytest.raises(ValueError, match="mag_disturbance_scale"):
+        VQFTogglingSettings(states=("a", "b"), mag_disturbance_scale=-1.0)
     with pytest.raises(ValueError, match="one value per state"):
         VQFTogglingSettings(states=("a", "b"), tau_mag_states=(9.0,))
 

@@ -6,17 +6,20 @@ acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulat
 
 1. confidence      c = max_s p_s / Σ_s p_s;   λ = clip((c − c₀) / (1 − c₀), 0, 1)
    (``confidence_floor`` c₀: at or below it the learned values are not trusted at all)
-2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag
-   and the motion-bias standard deviation σ_motion (a geometric blend: the probabilities
-   mix rates, not seconds); each per-state value is bounded (``TAU_ACC_RANGE`` ...), so no
-   state switches a correction off
-3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag) and
-   W_motion = σ⁴/V + σ² from the blended values, exactly as the core derives its own (B5)
+2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag,
+   the motion-bias standard deviation σ_motion and the rest thresholds th_ω, th_a (a geometric
+   blend: the probabilities mix rates, not seconds); each per-state value is bounded
+   (``TAU_ACC_RANGE`` ...), so no state switches a correction off
+3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag),
+   W_motion = σ⁴/V + σ² and th² from the blended values, exactly as the core derives its own (B5);
+   with a predicted magnetic disturbance (9D, σ_m > 0, the same law as the toggling CF's step 4)
+   k_mag ← k_mag / (1 + (|η̂_m| / σ_m)²): the heading correction backs off where the models
+   predict a disturbed field, on top of the core's own norm/dip rejection (M1–M4)
 4. noise removal   a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1])
 5. the core step on (ω, a_d, m_d) with those coefficients.
 
-Steps 1–3 run only when the class probabilities change (every hop of the in-loop models), so
-the per-sample cost is the core's. Without a prediction (NaN probabilities: before the first
+Steps 1–3 run only when the prediction changes (every hop of the in-loop models), so the
+per-sample cost is the core's. Without a prediction (NaN probabilities: before the first
 full window, or a model that failed) the core's own settings are used: the *fallback*, which is
 also what low confidence moves toward. With every per-state value equal to the core's, the
 filter *is* the core (test): learning switched off.
@@ -45,7 +48,8 @@ from togglecf.filters.vqf_core import (
 )
 
 __all__ = ["VQFTogglingFilter", "VQFTogglingSettings", "VQFTogglingCoefficients", "vqf_toggling_step",
-           "TAU_ACC_RANGE", "TAU_MAG_RANGE", "BIAS_SIGMA_MOTION_RANGE", "MAX_STATES"]
+           "TAU_ACC_RANGE", "TAU_MAG_RANGE", "BIAS_SIGMA_MOTION_RANGE", "REST_TH_GYR_RANGE", "REST_TH_ACC_RANGE",
+           "MAX_STATES"]
 
 _DEG = math.pi / 180.0
 
@@ -55,6 +59,10 @@ TAU_ACC_RANGE = (0.3, 60.0)
 TAU_MAG_RANGE = (0.5, 200.0)
 #: bounds [°/s] of a per-state σ_motion (bias estimation in motion: never frozen, never wild)
 BIAS_SIGMA_MOTION_RANGE = (0.01, 2.0)
+#: bounds [°/s] of a per-state rest threshold th_ω (rest detection never off, never everywhere)
+REST_TH_GYR_RANGE = (0.5, 10.0)
+#: bounds [m/s²] of a per-state rest threshold th_a
+REST_TH_ACC_RANGE = (0.1, 3.0)
 #: most motion states a model may have (the state keeps the last probabilities to see changes)
 MAX_STATES = 8
 
@@ -68,7 +76,11 @@ class VQFTogglingSettings(VQFCoreSettings):
         tau_acc_states: τ_acc [s] per state (default: the core's ``tau_acc`` for all).
         tau_mag_states: τ_mag [s] per state (default: the core's ``tau_mag``).
         bias_sigma_motion_states: σ_motion [°/s] per state (default: the core's).
+        rest_th_gyr_states: rest threshold th_ω [°/s] per state (default: the core's ``rest_th_gyr``).
+        rest_th_acc_states: rest threshold th_a [m/s²] per state (default: the core's ``rest_th_acc``).
         confidence_floor: c₀ in [0, 1) of step 1; 0 trusts every prediction fully.
+        mag_disturbance_scale: σ_m [µT] of step 3: the heading gain is divided by
+            1 + (|η̂_m| / σ_m)² (9D); 0 (default) = off.
         noise_weight_acc, noise_weight_mag: w_a, w_m in [0, 1] of step 4 (default 0: off).
     """
 
@@ -76,7 +88,10 @@ class VQFTogglingSettings(VQFCoreSettings):
     tau_acc_states: tuple = ()
     tau_mag_states: tuple = ()
     bias_sigma_motion_states: tuple = ()
+    rest_th_gyr_states: tuple = ()
+    rest_th_acc_states: tuple = ()
     confidence_floor: float = 0.0
+    mag_disturbance_scale: float = 0.0
     noise_weight_acc: float = 0.0
     noise_weight_mag: float = 0.0
 
@@ -88,7 +103,9 @@ class VQFTogglingSettings(VQFCoreSettings):
             raise ValueError(f"states: 1 to {MAX_STATES} motion states, got {n}")
         for name, core, (lo, hi) in (("tau_acc_states", self.tau_acc, TAU_ACC_RANGE),
                                      ("tau_mag_states", self.tau_mag, TAU_MAG_RANGE),
-                                     ("bias_sigma_motion_states", self.bias_sigma_motion, BIAS_SIGMA_MOTION_RANGE)):
+                                     ("bias_sigma_motion_states", self.bias_sigma_motion, BIAS_SIGMA_MOTION_RANGE),
+                                     ("rest_th_gyr_states", self.rest_th_gyr, REST_TH_GYR_RANGE),
+                                     ("rest_th_acc_states", self.rest_th_acc, REST_TH_ACC_RANGE)):
             vals = tuple(float(v) for v in getattr(self, name)) or (float(core),) * n
             object.__setattr__(self, name, vals)
             if len(vals) != n:
@@ -96,6 +113,8 @@ class VQFTogglingSettings(VQFCoreSettings):
             if not all(lo <= v <= hi for v in vals):
                 raise ValueError(f"{name} must lie in [{lo}, {hi}] (a state may not switch the correction off), "
                                  f"got {vals}")
+        if not (self.mag_disturbance_scale >= 0.0 and math.isfinite(self.mag_disturbance_scale)):
+            raise ValueError(f"mag_disturbance_scale must be >= 0 µT (0: off), got {self.mag_disturbance_scale}")
         if not 0.0 <= self.confidence_floor < 1.0:
             raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
         if not (0.0 <= self.noise_weight_acc <= 1.0 and 0.0 <= self.noise_weight_mag <= 1.0):
@@ -113,12 +132,15 @@ class VQFTogglingSettings(VQFCoreSettings):
 VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
     *VQFCoreCoefficients.__annotations__.items(),
     ("n_states", int), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
+    ("ln_rest_th_gyr", np.ndarray), ("ln_rest_th_acc", np.ndarray),
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
-    ("confidence_floor", float), ("noise_weight_acc", float), ("noise_weight_mag", float)])
+    ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
+    ("confidence_floor", float), ("mag_disturbance_scale", float), ("noise_weight_acc", float),
+    ("noise_weight_mag", float)])
 
 _MOD_NAMES = tuple(f"mod_{f}" for f in CoreModulation._fields)
 _STATE_NAMES = (VQFCoreFilter.state_names + _MOD_NAMES + ("tau_acc_now", "tau_mag_now", "trust_now")
-                + tuple(f"last_p{s}" for s in range(MAX_STATES)))
+                + tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE)))
 O_MOD = 5 + len(VQFCoreFilter.state_names)
 O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
 O_LAST_P = O_NOW + 3
@@ -127,9 +149,9 @@ N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
 
 
 @njit(cache=True, inline="always")
-def _probabilities_changed(state, pred, ns):
-    """True when ``pred``'s class probabilities differ from the last ones (NaN equals NaN)."""
-    for s in range(ns):
+def _prediction_changed(state, pred, n):
+    """True when the first ``n`` entries of ``pred`` differ from the last ones (NaN equals NaN)."""
+    for s in range(n):
         a, b = pred[s], state[O_LAST_P + s]
         if a != b and not (a != a and b != b):
             return True
@@ -139,14 +161,15 @@ def _probabilities_changed(state, pred, ns):
 @njit(cache=True)
 def modulate(state, p, pred):
     """Steps 1–3: blend the per-state values with the probabilities in ``pred`` and store the
-    resulting ``CoreModulation`` (and the probabilities) in the state. Returns (τ_acc, τ_mag, λ)."""
+    resulting ``CoreModulation`` (and the prediction) in the state. Returns (τ_acc, τ_mag, λ)."""
     ns = p.n_states
     total = 0.0
     top = 0.0
     ok = True
+    for s in range(ns + N_PRED_NOISE):
+        state[O_LAST_P + s] = pred[s]
     for s in range(ns):
         v = pred[s]
-        state[O_LAST_P + s] = v
         if not (v >= 0.0 and v < math.inf):
             ok = False
         else:
@@ -154,22 +177,33 @@ def modulate(state, p, pred):
             top = max(top, v)
     lam = 0.0
     la, lm, ls = p.ln_tau_acc_core, p.ln_tau_mag_core, p.ln_sigma_motion_core
+    lg, lc = p.ln_rest_th_gyr_core, p.ln_rest_th_acc_core
     if ok and total > 0.0:  # step 1
         lam = min(max((top / total - p.confidence_floor) / (1.0 - p.confidence_floor), 0.0), 1.0)
-        ma, mm, msg = 0.0, 0.0, 0.0
+        ma, mm, msg, mg, mc = 0.0, 0.0, 0.0, 0.0, 0.0
         for s in range(ns):  # step 2
             w = pred[s] / total
             ma += w * p.ln_tau_acc[s]
             mm += w * p.ln_tau_mag[s]
             msg += w * p.ln_sigma_motion[s]
+            mg += w * p.ln_rest_th_gyr[s]
+            mc += w * p.ln_rest_th_acc[s]
         la = lam * ma + (1.0 - lam) * la
         lm = lam * mm + (1.0 - lam) * lm
         ls = lam * msg + (1.0 - lam) * ls
+        lg = lam * mg + (1.0 - lam) * lg
+        lc = lam * mc + (1.0 - lam) * lc
     tau_acc, tau_mag = math.exp(la), math.exp(lm)
     b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)  # step 3
     w_motion = bias_noise_w(math.exp(ls), p.bias_v)
-    mod = (b0, b1, b2, a1, a2, gain_from_tau(tau_mag, p.ts), w_motion,
-           w_motion * (p.bias_w_vertical / p.bias_w_motion), p.rest_th_gyr_sq, p.rest_th_acc_sq)
+    k_mag = gain_from_tau(tau_mag, p.ts)
+    if p.mag_disturbance_scale > 0.0:  # the predicted disturbance (no prediction: NaN, no change)
+        e0, e1, e2 = pred[ns + 3], pred[ns + 4], pred[ns + 5]
+        e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
+        if e >= 0.0:  # False for NaN
+            k_mag = k_mag / (1.0 + e)
+    mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
+           math.exp(2.0 * lg), math.exp(2.0 * lc))
     for i in range(len(mod)):
         state[O_MOD + i] = mod[i]
     return tau_acc, tau_mag, lam
@@ -187,7 +221,7 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     the trust λ in the learned values (0: fallback to the core)."""
     p = params
     ns = p.n_states
-    if _probabilities_changed(state, pred, ns):
+    if _prediction_changed(state, pred, ns + (N_PRED_NOISE if p.mag_disturbance_scale > 0.0 else 0)):
         state[O_NOW], state[O_NOW + 1], state[O_NOW + 2] = modulate(state, p, pred)
     eta_ok = True
     for j in range(N_PRED_NOISE):
@@ -224,8 +258,13 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
         return {**core, "n_states": len(s.states), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
                 "ln_tau_mag": np.log(np.array(s.tau_mag_states)),
                 "ln_sigma_motion": np.log(np.array(s.bias_sigma_motion_states) * _DEG),
+                "ln_rest_th_gyr": np.log(np.array(s.rest_th_gyr_states) * _DEG),
+                "ln_rest_th_acc": np.log(np.array(s.rest_th_acc_states)),
                 "ln_tau_acc_core": math.log(s.tau_acc), "ln_tau_mag_core": math.log(s.tau_mag),
-                "ln_sigma_motion_core": math.log(s.bias_sigma_motion * _DEG), "confidence_floor": s.confidence_floor,
+                "ln_sigma_motion_core": math.log(s.bias_sigma_motion * _DEG),
+                "ln_rest_th_gyr_core": math.log(s.rest_th_gyr * _DEG), "ln_rest_th_acc_core": math.log(s.rest_th_acc),
+                "confidence_floor": s.confidence_floor,
+                "mag_disturbance_scale": s.mag_disturbance_scale if self.use_mag else 0.0,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
 
     def reset(self):
@@ -237,7 +276,7 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
                                   "bias_w_vertical", "rest_th_gyr_sq", "rest_th_acc_sq")):
             self.state[O_MOD + i] = getattr(p, name)
         self.state[O_NOW:O_NOW + 3] = (self.settings.tau_acc, self.settings.tau_mag, 0.0)
-        self.state[O_LAST_P:O_LAST_P + MAX_STATES] = np.nan
+        self.state[O_LAST_P:O_LAST_P + MAX_STATES + N_PRED_NOISE] = np.nan
 
     def _default_pred(self, n):
         return np.full((n, self.n_predictions), np.nan)

@@ -96,14 +96,18 @@ class GainSearch:
 @dataclass(frozen=True)
 class VQFGainSearch:
     """Grids of the coordinate descent of the VQF core's learned time constants
-    (``filters.vqf_toggling``): per state τ_acc [s], τ_mag [s] (9D) and σ_motion [°/s]; the
-    confidence floor c₀; the noise weights. The descent starts at the core's own settings
-    (learning off), so on the training trials it can only improve on the core."""
+    (``filters.vqf_toggling``): per state τ_acc [s], τ_mag [s] (9D), σ_motion [°/s] and the rest
+    thresholds th_ω [°/s], th_a [m/s²]; the confidence floor c₀; the predicted-disturbance scale
+    σ_m [µT] of the heading gain (9D); the noise weights. The descent starts at the core's own
+    settings (learning off), so on the training trials it can only improve on the core."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
     tau_mag: tuple = (2.0, 5.0, 9.0, 20.0, 50.0, 120.0)
     bias_sigma_motion: tuple = (0.03, 0.1, 0.3)
+    rest_th_gyr: tuple = (1.0, 2.0, 4.0)
+    rest_th_acc: tuple = (0.25, 0.5, 1.0)
     confidence_floor: tuple = (0.0, 0.5, 0.7)
+    mag_disturbance_scale: tuple = (0.0, 3.0, 10.0)
     noise_weight_acc: tuple = (0.0, 0.5, 1.0)
     noise_weight_mag: tuple = (0.0, 0.5, 1.0)
     sweeps: int = 2
@@ -118,7 +122,8 @@ class VQFGainSearch:
 
     def candidates(self, settings: VQFTogglingSettings, use_mag: bool = True):
         n = len(settings.states)
-        grids = (("tau_acc_states", self.tau_acc), ("bias_sigma_motion_states", self.bias_sigma_motion)) + (
+        grids = (("tau_acc_states", self.tau_acc), ("bias_sigma_motion_states", self.bias_sigma_motion),
+                 ("rest_th_gyr_states", self.rest_th_gyr), ("rest_th_acc_states", self.rest_th_acc)) + (
             (("tau_mag_states", self.tau_mag),) if use_mag else ())
         for name, grid in grids:
             for s in range(n):
@@ -128,7 +133,8 @@ class VQFGainSearch:
                     g[s] = v
                     vals.append((v, {name: tuple(g)}))
                 yield f"{name}[{settings.states[s]}]", vals
-        for name in ("confidence_floor", "noise_weight_acc") + (("noise_weight_mag",) if use_mag else ()):
+        for name in ("confidence_floor", "noise_weight_acc") + (
+                ("noise_weight_mag", "mag_disturbance_scale") if use_mag else ()):
             yield name, [(v, {name: v}) for v in getattr(self, name)]
 
 
@@ -353,8 +359,10 @@ def describe_gains(settings) -> str:
     """The learned values of ``settings`` in one line (logs, reports)."""
     if isinstance(settings, VQFTogglingSettings):
         return (f"τ_acc {settings.tau_acc_states} s, τ_mag {settings.tau_mag_states} s, σ_motion "
-                f"{settings.bias_sigma_motion_states} °/s, c₀ {settings.confidence_floor}, noise weights "
-                f"{settings.noise_weight_acc}/{settings.noise_weight_mag}")
+                f"{settings.bias_sigma_motion_states} °/s, rest th_ω {settings.rest_th_gyr_states} °/s, th_a "
+                f"{settings.rest_th_acc_states} m/s², c₀ {settings.confidence_floor}, σ_m "
+                f"{settings.mag_disturbance_scale} µT, noise weights {settings.noise_weight_acc}/"
+                f"{settings.noise_weight_mag}")
     return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
             f"bias τ {settings.bias_tau} s, "
             f"σ_m {settings.mag_disturbance_scale}, noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")

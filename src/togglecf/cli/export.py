@@ -1,5 +1,6 @@
 """``togglecf export``: a model directory as C (TL2cgen and/or compact arrays, checked against the
-Python models) and the whole toggling filter in C; ``--max-bytes`` trains a pruned point first: the
+Python models) and the whole learned filter in C (``--filter``: the toggling CF, or the VQF core
+with learned time constants); ``--max-bytes`` trains a pruned point first: the
 best point of an existing pruning sweep, else the documented default point
 (``run.prune.DEFAULT_EXPORT_POINT``); the sweep itself runs only with ``--full-sweep``."""
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 from togglecf.cli.prune import add_sweep_arguments, sweep_from_args
 from togglecf.core.io import atomic_write_json
 from togglecf.embedded.cfilter import export_c_filter
+from togglecf.embedded.cvqf_toggling import export_c_vqf_toggling
 from togglecf.embedded.forest_export import (
     ARRAY_LINK_MAIN,
     TOLERANCE,
@@ -54,6 +56,10 @@ def add_export_parser(subparsers):
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
     sp.add_argument("--6d", dest="six_d", action="store_true",
                     help="C filter without magnetometer (6D gains from gains.json)")
+    sp.add_argument("--filter", choices=("toggling", "vqf_toggling"), default="toggling",
+                    help="which learned filter goes to OUT/filter in C: toggling (the toggling CF, gains 9d/6d; "
+                    "togglecf.embedded.cfilter) or vqf_toggling (the VQF core with learned time constants, gains "
+                    "vqf_9d/vqf_6d; togglecf.embedded.cvqf_toggling: sizes for host, rv32imc and Cortex-M4F)")
     sp.add_argument("--max-bytes", type=int, metavar="N",
                     help="flash budget: train a pruned point on the model's training trials into OUT/models and "
                     "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "
@@ -167,15 +173,26 @@ def cmd_export(args) -> int:
     filter_dir = Path(args.out) / "filter"
     if (Path(args.models) / "gains.json").is_file():
         fs = float(load_bundle(args.models).metadata["sampling_rate"])
-        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
-        forest_size = rep["object_sizes"]["tcf_forest.c"]
+        mode = "6D" if args.six_d else "9D"
+        if args.filter == "vqf_toggling":
+            rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d)
+            forest_size = rep["object_sizes"]["tcf_forest.c"]  # {host, riscv, arm}: {text, data, bss, total}
+            code = rep["code_bytes"]
+            print(f"C learned VQF filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+                  f"trees + filter object code {_fmt_size(code['host'])} host, {_fmt_size(code['riscv'])} rv32imc, "
+                  f"{_fmt_size(code['arm'])} Cortex-M4F (of which trees {_fmt_size(rep['code_bytes_trees']['host'])} "
+                  f"host); kept by a --gc-sections link: {_fmt_size(rep['code_bytes_gc']['riscv'])} rv32imc, "
+                  f"{_fmt_size(rep['code_bytes_gc']['arm'])} Cortex-M4F")
+        else:
+            rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
+            forest_size = rep["object_sizes"]["tcf_forest.c"]
+            linked = rep.get("linked_riscv")
+            print(f"C filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+                  f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
+                  f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
+                  + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
         rep["forest_bytes"] = forest_size
         reports["filter"] = rep
-        linked = rep.get("linked_riscv")
-        print(f"C filter ({'6D' if args.six_d else '9D'}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
-              f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
-              f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
-              + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
         if choice is not None:  # the budget holds for what ships: the filter's trees
             got = (forest_size["riscv"] or forest_size["host"])["total"]
             choice["filter_forest_bytes"] = got

@@ -60,7 +60,7 @@ from togglecf.embedded.toolchain import (
 )
 from togglecf.filters.vqf_core import VQFCoreSettings
 
-__all__ = ["export_c_vqf", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES",
+__all__ = ["export_c_vqf", "vqf_config_header", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES",
            "measure_vqf_state_bytes", "DIAG_NAMES"]
 
 VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c", "tcf_csv.h")
@@ -132,7 +132,7 @@ def _riscv_stack_usage(c_file, include_dirs, function):
 # Export
 # ------------------------------------------------------------------------------------------
 
-def _config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
+def vqf_config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
     lines = [f"    .fs = {c_float(fs)},", f"    .use_mag = {1 if use_mag else 0},"]
     for f in fields(settings):
         v = getattr(settings, f.name)
@@ -205,7 +205,7 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     files = [atomic_write_text(out_dir / name, template(name)) for name in VQF_TEMPLATES]
-    files.append(atomic_write_text(out_dir / "tcf_vqf_config.h", _config_header(fs, settings, use_mag)))
+    files.append(atomic_write_text(out_dir / "tcf_vqf_config.h", vqf_config_header(fs, settings, use_mag)))
     files.append(atomic_write_text(out_dir / "Makefile", _MAKEFILE.format(cflags=" ".join(HARNESS_CFLAGS))))
     report = {"out_dir": str(out_dir), "files": [str(p) for p in files], "fs": fs, "use_mag": bool(use_mag),
               "settings": asdict(settings), "coefficients": "derived in C by tcf_vqf_init (float32)",

@@ -2,8 +2,8 @@
  *
  * Line-by-line port of togglecf/filters/vqf_core.py (vqf_core_step, _bias_update, ...,
  * VQFCoreFilter._coefficients and reset); the comments (R1)...(M5), (B1)...(B5) and
- * "Alg. 1 l. N" refer to that module's docstring. The one deliberate difference is the form
- * of the second-order low-pass (lp_step below; same transfer function).
+ * "Alg. 1 l. N" refer to that module's docstring. The second-order low-passes run in the same
+ * "delta" form as the Python's _lp (lp_step below), in float32 instead of float64.
  */
 #include <math.h>
 #include <stddef.h>
@@ -126,7 +126,11 @@ static int lp_begin(tcf_vqf_lp_head_t *h) {
      dv_k = (1 - beta) dv_{k-1} + k (x_k - v_{k-1}),   v_k = v_{k-1} + dv_k,
      y_k  = v_{k-1} + (dv_k - dv_{k-1}) / 4             (= b0 (w_k + 2 w_{k-1} + w_{k-2}))
    All increments are small numbers added to a level, so float32 keeps the pole positions
-   and the DC gain exact. Averaging phase: s[0] is the running sum, the output the mean. */
+   and the DC gain exact. The state is the signal itself (level and increment), not a
+   coefficient-dependent mix as in the direct form II transposed, so when the learned filter
+   changes the tau_acc coefficients *c between samples the same state simply runs on with the
+   new ones and the output stays continuous (as the Python filter). Averaging phase: s[0] is
+   the running sum, the output the mean. */
 static float lp_step(float s[2], float x, int ready, uint32_t n, const tcf_vqf_lp_coef_t *c) {
   if (ready) {
     float dv = (s[1] - c->beta * s[1]) + c->k * (x - s[0]);
@@ -140,7 +144,8 @@ static float lp_step(float s[2], float x, int ready, uint32_t n, const tcf_vqf_l
 }
 
 /* End of the averaging phase after tau (_lp_end): every channel starts in the steady state
-   of its mean (v = mean, dv = 0: the next output is mean + b0 (x - mean), as the DF2T). */
+   of its mean (v = mean, dv = 0: the next output is mean + b0 (x - mean), as VQF's DF2T started in the
+   steady state of the mean). */
 static void lp_end(tcf_vqf_lp_head_t *h, float (*s)[2], int nch, int ready, float tau, float ts) {
   int i;
   if (!ready && (float)h->n * ts >= tau) {
@@ -306,6 +311,27 @@ void tcf_vqf_reset(tcf_vqf_t *f) {
   f->k_mag_init = 1.0f;
 }
 
+void tcf_vqf_base_mod(const tcf_vqf_t *f, tcf_vqf_mod_t *m) {
+  m->acc_lp = f->c.acc_lp;
+  m->k_mag = f->c.k_mag;
+  m->bias_w_motion = f->c.bias_w_motion;
+  m->bias_w_vertical = f->c.bias_w_vertical;
+  m->rest_th_gyr_sq = f->c.rest_th_gyr_sq;
+  m->rest_th_acc_sq = f->c.rest_th_acc_sq;
+}
+
+/* modulate, step 3 (filters/vqf_toggling.py): the coefficients of blended time constants */
+void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float sigma_motion, tcf_vqf_mod_t *m) {
+  const tcf_vqf_coef_t *c = &f->c;
+  float s2 = sigma_motion * sigma_motion;
+  m->acc_lp = lp_coef(tau_acc, c->ts);
+  m->k_mag = gain_from_tau(tau_mag, c->ts);
+  m->bias_w_motion = s2 * (s2 / c->bias_v) + s2;  /* (B5), bias_noise_w */
+  m->bias_w_vertical = m->bias_w_motion * (c->bias_w_vertical / c->bias_w_motion);
+  m->rest_th_gyr_sq = c->rest_th_gyr_sq;
+  m->rest_th_acc_sq = c->rest_th_acc_sq;
+}
+
 /* ------------------------------------------------------------------ the step */
 
 void tcf_vqf_update(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
@@ -313,6 +339,14 @@ void tcf_vqf_update(tcf_vqf_t *f, const float gyr[3], const float acc[3], const 
 }
 
 void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
+  tcf_vqf_mod_t m;
+  tcf_vqf_base_mod(f, &m);
+  tcf_vqf_update_mod(f, gyr, acc, mag, dt, &m);
+}
+
+/* core_update: vqf_core_step with the modulated coefficients *m */
+void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                        const tcf_vqf_mod_t *m) {
   const tcf_vqf_coef_t *p = &f->c;
   const float ts = p->ts;
   const int rest_bias = p->rest_bias != 0u, rest_lp_on = rest_bias || p->mag_rejection != 0u;
@@ -334,7 +368,7 @@ void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], con
         f->rest_gyr_lp[i] = g[i];
         d2 += d * d;
       }
-      if (d2 >= p->rest_th_gyr_sq || fabsf(g[0]) > p->bias_clip || fabsf(g[1]) > p->bias_clip ||
+      if (d2 >= m->rest_th_gyr_sq || fabsf(g[0]) > p->bias_clip || fabsf(g[1]) > p->bias_clip ||
           fabsf(g[2]) > p->bias_clip) {
         f->rest_t = 0.0f;
         f->rest = 0u;
@@ -362,14 +396,14 @@ void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], con
       for (i = 0; i < 3; ++i) l[i] = lp_step(f->racc_lp[i], acc[i], ready, f->racc_h.n, &p->rest_lp);
       lp_end(&f->racc_h, f->racc_lp, 3, ready, p->rest_tau, ts);
       for (i = 0; i < 3; ++i) d2 += (acc[i] - l[i]) * (acc[i] - l[i]);
-      if (d2 >= p->rest_th_acc_sq) {
+      if (d2 >= m->rest_th_acc_sq) {
         f->rest_t = 0.0f;
         f->rest = 0u;
       }
     }
     q_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
     ready = lp_begin(&f->acc_h);  /* Alg. 1 l. 10 */
-    for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &p->acc_lp);
+    for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &m->acc_lp);
     lp_end(&f->acc_h, f->acc_lp, 3, ready, p->tau_acc, ts);
     q_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
     na = sqrtf(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2]);
@@ -394,10 +428,10 @@ void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], con
         rb[0] = r[0] * b0 + r[1] * b1 + r[2] * b2;
         rb[1] = r[3] * b0 + r[4] * b1 + r[5] * b2;
         ready = lp_begin(&f->r_h);  /* R_bar = LP_2(R; tau_acc) */
-        for (i = 0; i < 9; ++i) rl[i] = lp_step(f->r_lp[i], r[i], ready, f->r_h.n, &p->acc_lp);
+        for (i = 0; i < 9; ++i) rl[i] = lp_step(f->r_lp[i], r[i], ready, f->r_h.n, &m->acc_lp);
         lp_end(&f->r_h, f->r_lp, 9, ready, p->tau_acc, ts);
         ready = lp_begin(&f->rb_h);  /* (R b)_bar = LP_2(R b; tau_acc), x and y */
-        for (i = 0; i < 2; ++i) rb[i] = lp_step(f->rb_lp[i], rb[i], ready, f->rb_h.n, &p->acc_lp);
+        for (i = 0; i < 2; ++i) rb[i] = lp_step(f->rb_lp[i], rb[i], ready, f->rb_h.n, &m->acc_lp);
         lp_end(&f->rb_h, f->rb_lp, 2, ready, p->tau_acc, ts);
         bias_predict(f);  /* (B1) */
         for (i = 0; i < 9; ++i) P[i] = f->bias_p[i];
@@ -413,7 +447,7 @@ void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], con
           float pmt[9];
           m_mmt(P, rl, pmt);  /* P M^T */
           m_mm(rl, pmt, s);   /* M P M^T */
-          s[0] += p->bias_w_motion; s[4] += p->bias_w_motion; s[8] += p->bias_w_vertical;
+          s[0] += m->bias_w_motion; s[4] += m->bias_w_motion; s[8] += m->bias_w_vertical;
           bias_update(f, ex, ey, ez, pmt, s);
         }
         for (i = 0; i < 3; ++i) f->bias[i] = clipf(f->bias[i], p->bias_clip);
@@ -468,7 +502,7 @@ void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], con
       }
     }
     dis = wrapf(atan2f(me[0], me[1]) - f->delta);  /* Alg. 1 l. 18-19 */
-    k = p->k_mag;
+    k = m->k_mag;
     if (p->mag_rejection) {  /* (M4) */
       if (f->mag_dist) {
         if (f->mag_reject_t <= p->mag_max_rejection_t) {

@@ -13,16 +13,18 @@
  * Ts = 1/fs by tcf_vqf_init (float32, once; same formulas as VQFCoreFilter._coefficients)
  * and kept inside tcf_vqf_t, so rate and settings can be chosen at run time.
  * Measured (gcc 12, -Os): sizeof(tcf_vqf_t) = TCF_VQF_STATE_BYTES = 532 bytes; object code
- * of tcf_vqf.c 5.2 KB text on a Cortex-M4F (hard float), 9.6 KB on rv32imc (soft float), 8.5
- * KB on x86-64; stack of the deepest tcf_vqf_update call chain 488 B (M4F) / 640 B (rv32imc),
+ * of tcf_vqf.c 5.3 KB text on a Cortex-M4F (hard float), 9.6 KB on rv32imc (soft float), 8.6
+ * KB on x86-64; stack of the deepest tcf_vqf_update call chain 560 B (M4F) / 704 B (rv32imc),
  * libm routines not counted (togglecf.embedded.cvqf.export_c_vqf reports all of these).
  *
- * Low-pass filters: the second-order Butterworth LP_2 of the Python filter in a "delta" form
- * (state: output-level v and increment dv, coefficients 4 b0 and beta = 1 - a2, both small and
- * exactly representable) instead of the direct form II transposed: with tau_acc = 3 s at
- * 286 Hz, a1 and a2 are within 2.3e-3 of -2 and 1, and in float32 the DF2T's DC gain
- * (1 + a1 + a2 = 4 b0 = 2.7e-6) would be off by ~5 % and its rounding noise amplified by
- * ~1/(4 b0). Same transfer function, same start-up (running mean for tau, then steady state).
+ * Low-pass filters: the second-order Butterworth LP_2 in the "delta" form of the Python filter
+ * (vqf_core._lp; state: output level v and increment dv, coefficients 4 b0 and beta = 1 - a2,
+ * both small and exactly representable) instead of VQF's direct form II transposed: with
+ * tau_acc = 3 s at 286 Hz, a1 and a2 are within 2.3e-3 of -2 and 1, and in float32 the DF2T's
+ * DC gain (1 + a1 + a2 = 4 b0 = 2.7e-6) would be off by ~5 % and its rounding noise amplified
+ * by ~1/(4 b0). Same transfer function, same start-up (running mean for tau, then steady state).
+ * The state is the signal, not a coefficient-dependent mix, so a learned filter may change the
+ * tau_acc coefficients between samples (tcf_vqf_update_mod) without a kick in the output.
  *
  * Bad samples (policy of togglecf.filters.base): a non-finite or saturated gyro (|w| >= 34.9
  * rad/s on an axis) or an invalid dt (non-finite, <= 0, > max_dt) skips the gyro part (rest
@@ -122,6 +124,17 @@ typedef struct tcf_vqf {
   float mag_lp[2][2];     /* field norm and dip, tau_mag,current (M1) */
 } tcf_vqf_t;
 
+/* The coefficients a learned filter may change from sample to sample (CoreModulation of
+   togglecf.filters.vqf_core); tcf_vqf_update_dt runs them at the settings' values
+   (tcf_vqf_base_mod). Units of tcf_vqf_coef_t. */
+typedef struct tcf_vqf_mod {
+  tcf_vqf_lp_coef_t acc_lp;  /* tau_acc low-pass (inclination, R and R b for the bias), delta form */
+  float k_mag;               /* heading gain per sample, 1 - exp(-Ts / tau_mag) */
+  float bias_w_motion;       /* W_motion of the bias estimation in motion [(rad/s)^2] */
+  float bias_w_vertical;     /* its vertical-axis counterpart */
+  float rest_th_gyr_sq, rest_th_acc_sq;  /* rest thresholds [(rad/s)^2], [(m/s^2)^2] */
+} tcf_vqf_mod_t;
+
 /* sizeof(tcf_vqf_t): 133 four-byte members (36 coefficients, 97 state: quaternions 12, delta 1,
    bias 3 + P 9, rest 4, magnetometer 9, flags 3, low-pass heads 12 + channels 44), no padding
    (checked at compile time in tcf_vqf.c) */
@@ -146,6 +159,22 @@ void tcf_vqf_update(tcf_vqf_t *f, const float gyr[3], const float acc[3], const 
 /* Same with the actual time step dt [s] of the gyro integration (the filters and timers keep
    the nominal Ts, as the Python filter). */
 void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt);
+
+/* The modulated coefficients at the settings' values (the core without learning). */
+void tcf_vqf_base_mod(const tcf_vqf_t *f, tcf_vqf_mod_t *m);
+
+/* The modulated coefficients for time constants tau_acc, tau_mag [s] (> 0) and the motion-bias
+   standard deviation sigma_motion [rad/s] (> 0), with the formulas of tcf_vqf_init (float32):
+   the tau_acc Butterworth low-pass, k_mag = 1 - exp(-Ts / tau_mag), W_motion = s^4 / V + s^2
+   and W_vertical = W_motion * (W_vertical / W_motion of the settings); rest thresholds as set. */
+void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float sigma_motion, tcf_vqf_mod_t *m);
+
+/* One sample with the coefficients *m instead of the settings' ones (tcf_vqf_update_dt is this
+   with tcf_vqf_base_mod). *m may change from one call to the next: the low-pass states (level
+   and increment, see "Low-pass filters" above) run on with the new tau_acc coefficients, as in
+   the Python filter, so the output stays continuous. */
+void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                        const tcf_vqf_mod_t *m);
 
 /* Current orientation q[4] = [w x y z], sensor -> ENU (identity before the first sample). */
 void tcf_vqf_quat(const tcf_vqf_t *f, float q[4]);

@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
            "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
-           "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv"]
+           "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv", "reachable_code_size"]
 
 RISCV_GCC = "riscv64-unknown-elf-gcc"
 
@@ -146,6 +146,29 @@ def link_riscv(c_files, include_dirs, main_source: str, defines=()) -> dict | No
         line = run_command([rv_size, elf]).splitlines()[1].split()
     text, data, bss = (int(v) for v in line[:3])
     return {"text": text, "data": data, "bss": bss, "flash": text + data}
+
+
+def reachable_code_size(compiler, flags, size_tool, c_files, include_dirs, roots) -> dict:
+    """``{text, data, bss, total}`` of the part of ``c_files`` a firmware link keeps when it calls
+    only the functions ``roots``: each file compiled ``-Os -ffunction-sections -fdata-sections``,
+    then partially linked (``-r``) with ``--gc-sections`` from those roots. Only the code and
+    constants of ``c_files`` count: what they call outside (libm, soft-float, libc) stays
+    undefined, as in ``object_size``; unlike there, functions nothing reachable calls (unused
+    API) are dropped."""
+    link_flags = [f for f in flags if not f.startswith("--specs=")]
+    with tempfile.TemporaryDirectory() as tmp:
+        objs = []
+        for i, f in enumerate(map(Path, c_files)):
+            obj = Path(tmp) / f"{i}_{f.stem}.o"
+            run_command([compiler, *flags, "-Os", "-ffunction-sections", "-fdata-sections", "-c", f, "-o", obj,
+                         *[f"-I{d}" for d in [*include_dirs, f.parent]]])
+            objs.append(obj)
+        out = Path(tmp) / "kept.o"
+        run_command([compiler, *link_flags, "-nostdlib", "-r", "-Wl,--gc-sections", f"-Wl,--entry={roots[0]}",
+                     *(f"-Wl,--undefined={r}" for r in roots[1:]), *objs, "-o", out])
+        line = run_command([size_tool, out]).splitlines()[1].split()
+    text, data, bss = (int(v) for v in line[:3])
+    return {"text": text, "data": data, "bss": bss, "total": text + data + bss}
 
 
 def arm_available() -> bool:

@@ -1,0 +1,155 @@
+/* tcf_vqf_toggling.c: the VQF core with learned time constants in C99, float32 (API in
+ * tcf_vqf_toggling.h). Port of (togglecf/...):
+ *   toggling/inloop.py         inloop_step (models: tcf_features_push) -> tcf_vqft_update_dt
+ *   filters/vqf_toggling.py    vqf_toggling_step, modulate, reset     -> tcf_vqft_step, tcf_vqft_modulate,
+ *                                                                       tcf_vqft_init
+ * The core step is tcf_vqf_update_mod (tcf_vqf.c). "step N": the module docstring of
+ * filters/vqf_toggling.py.
+ */
+#include <math.h>
+#include <stddef.h>
+#include "tcf_vqf_toggling.h"
+#include "tcf_vqf_config.h"
+
+#if defined(__FAST_MATH__)
+#error "tcf_vqf_toggling.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
+#endif
+
+#if !defined(TCF_VQFT_NOISE_ACC) || !defined(TCF_VQFT_NOISE_MAG)
+#error "tcf_config.h must define TCF_VQFT_NOISE_ACC and TCF_VQFT_NOISE_MAG (re-export it)"
+#endif
+
+typedef char tcf_vqft_bytes_check[(sizeof(tcf_vqft_t) == TCF_VQFT_STATE_BYTES) ? 1 : -1];
+
+/* per-state ln tau_acc [ln s], ln tau_mag [ln s], ln sigma_motion [ln rad/s] (tcf_config.h) */
+static const float tcf_ln_tau_acc[TCF_N_CLASSES] = TCF_VQFT_LN_TAU_ACC_INIT;
+static const float tcf_ln_tau_mag[TCF_N_CLASSES] = TCF_VQFT_LN_TAU_MAG_INIT;
+static const float tcf_ln_sigma[TCF_N_CLASSES] = TCF_VQFT_LN_SIGMA_MOTION_INIT;
+/* per-state ln rest thresholds: th_omega [ln rad/s], th_a [ln m/s^2] */
+static const float tcf_ln_rest_gyr[TCF_N_CLASSES] = TCF_VQFT_LN_REST_TH_GYR_INIT;
+static const float tcf_ln_rest_acc[TCF_N_CLASSES] = TCF_VQFT_LN_REST_TH_ACC_INIT;
+/* entries of the prediction the modulation depends on: the class probabilities, and eta_m when
+   the predicted disturbance scales the heading gain (step 3) */
+#define TCF_VQFT_N_WATCHED (TCF_N_CLASSES + (TCF_VQFT_MAG_DIST_SCALE > 0.0f ? 6 : 0))
+/* mag = NULL: the features see zeros (and with TCF_USE_MAG == 0 the core ignores mag) */
+static const float tcf_vqft_zeros[3] = {0.0f, 0.0f, 0.0f};
+
+/* _prediction_changed: the watched entries of pred differ from the last ones (NaN equals NaN) */
+static int tcf_vqft_changed(const tcf_vqft_t *f, const float *pred) {
+  int s;
+  for (s = 0; s < TCF_VQFT_N_WATCHED; ++s) {
+    float a = pred[s], b = f->last_p[s];
+    if (a != b && !(isnan(a) && isnan(b))) return 1;
+  }
+  return 0;
+}
+
+/* modulate, steps 1-3: blend the per-state values with the probabilities, derive the coefficients */
+static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
+  float total = 0.0f, top = 0.0f, lam = 0.0f;
+  float la = TCF_VQFT_LN_TAU_ACC_CORE, lm = TCF_VQFT_LN_TAU_MAG_CORE, ls = TCF_VQFT_LN_SIGMA_MOTION_CORE;
+  float lg = TCF_VQFT_LN_REST_TH_GYR_CORE, lc = TCF_VQFT_LN_REST_TH_ACC_CORE;
+  int s, ok = 1;
+  for (s = 0; s < TCF_N_CLASSES + 6; ++s) f->last_p[s] = pred[s];
+  for (s = 0; s < TCF_N_CLASSES; ++s) {
+    float v = pred[s];
+    if (!(v >= 0.0f && v < INFINITY)) {
+      ok = 0;
+    } else {
+      total += v;
+      if (v > top) top = v;
+    }
+  }
+  if (ok && total > 0.0f) {  /* step 1 */
+    float ma = 0.0f, mm = 0.0f, msg = 0.0f, mg = 0.0f, mc = 0.0f;
+    lam = (top / total - TCF_VQFT_CONFIDENCE_FLOOR) / (1.0f - TCF_VQFT_CONFIDENCE_FLOOR);
+    lam = lam < 0.0f ? 0.0f : (lam > 1.0f ? 1.0f : lam);
+    for (s = 0; s < TCF_N_CLASSES; ++s) {  /* step 2 */
+      float w = pred[s] / total;
+      ma += w * tcf_ln_tau_acc[s];
+      mm += w * tcf_ln_tau_mag[s];
+      msg += w * tcf_ln_sigma[s];
+      mg += w * tcf_ln_rest_gyr[s];
+      mc += w * tcf_ln_rest_acc[s];
+    }
+    la = lam * ma + (1.0f - lam) * la;
+    lm = lam * mm + (1.0f - lam) * lm;
+    ls = lam * msg + (1.0f - lam) * ls;
+    lg = lam * mg + (1.0f - lam) * lg;
+    lc = lam * mc + (1.0f - lam) * lc;
+  }
+  f->tau_acc = expf(la);
+  f->tau_mag = expf(lm);
+  f->trust = lam;
+  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, expf(ls), &f->mod);  /* step 3 */
+  f->mod.rest_th_gyr_sq = expf(2.0f * lg);
+  f->mod.rest_th_acc_sq = expf(2.0f * lc);
+#if TCF_USE_MAG
+  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f) {  /* the predicted disturbance lowers the heading gain (NaN: no change) */
+    const float *em = pred + TCF_N_CLASSES + 3;
+    float e = (em[0] * em[0] + em[1] * em[1] + em[2] * em[2])
+              / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
+    if (e >= 0.0f) f->mod.k_mag = f->mod.k_mag / (1.0f + e);
+  }
+#endif
+}
+
+/* vqf_toggling_step with the held prediction f->feat.pred */
+static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
+  const float *pred = f->feat.pred;
+#if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
+  const float *eta = pred + TCF_N_CLASSES;  /* eta_a xyz, eta_m xyz */
+  float a_d[3], m_d[3];
+  int j, eta_ok = 1;
+#endif
+  if (tcf_vqft_changed(f, pred)) tcf_vqft_modulate(f, pred);
+#if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
+  for (j = 0; j < 6; ++j)
+    if (!isfinite(eta[j])) eta_ok = 0;
+  for (j = 0; j < 3; ++j) {  /* step 4: noise removal (a weight of 0 is left out: a - 0 eta = a) */
+    a_d[j] = (TCF_VQFT_NOISE_ACC && eta_ok) ? acc[j] - TCF_VQFT_NOISE_WEIGHT_ACC * eta[j] : acc[j];
+    m_d[j] = (TCF_VQFT_NOISE_MAG && eta_ok) ? mag[j] - TCF_VQFT_NOISE_WEIGHT_MAG * eta[3 + j] : mag[j];
+  }
+  acc = a_d;
+  mag = m_d;
+#endif
+  tcf_vqf_update_mod(&f->core, gyr, acc, mag, dt, &f->mod);  /* step 5 */
+}
+
+int tcf_vqft_init(tcf_vqft_t *f) {
+  static const tcf_vqf_params_t p = TCF_VQF_PARAMS_INIT;
+  int s;
+  if (tcf_vqf_init(&f->core, &p) != 0) return -1;
+  tcf_features_init(&f->feat);
+  tcf_vqf_base_mod(&f->core, &f->mod);  /* no prediction seen yet: the core's coefficients */
+  for (s = 0; s < TCF_N_CLASSES + 6; ++s) f->last_p[s] = NAN;
+  f->tau_acc = p.tau_acc;
+  f->tau_mag = p.tau_mag;
+  f->trust = 0.0f;
+  return 0;
+}
+
+void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
+  if (mag == NULL) mag = tcf_vqft_zeros;
+  tcf_features_push(&f->feat, gyr, acc, mag);
+  tcf_vqft_step(f, gyr, acc, mag, dt);
+}
+
+void tcf_vqft_update(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  tcf_vqft_update_dt(f, gyr, acc, mag, TCF_DT);
+}
+
+void tcf_vqft_update_pred(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                          const float pred[TCF_N_PRED]) {
+  int k;
+  for (k = 0; k < TCF_N_PRED; ++k) f->feat.pred[k] = pred[k];
+  tcf_vqft_step(f, gyr, acc, mag == NULL ? tcf_vqft_zeros : mag, dt);
+}
+
+void tcf_vqft_quat(const tcf_vqft_t *f, float q[4]) { tcf_vqf_quat(&f->core, q); }
+
+int tcf_vqft_prediction(const tcf_vqft_t *f, float pred[TCF_N_PRED]) {
+  int k;
+  for (k = 0; k < TCF_N_PRED; ++k) pred[k] = f->feat.pred[k];
+  return isfinite(f->feat.pred[0]) ? 1 : 0;
+}

@@ -1,0 +1,78 @@
+/* tcf_vqf_toggling.h: the VQF core with learned, motion-dependent time constants of togglecf in
+ * C99, float32 (port of togglecf.toggling.inloop.ModelVQFTogglingFilter: the models in the loop
+ * + togglecf.filters.vqf_toggling.vqf_toggling_step).
+ *
+ * Per sample: the models (tcf_features.{h,c}, shared with the toggling CF export: streaming
+ * features, out-of-range check, the tree ensemble tcf_forest.c every TCF_HOP samples, held
+ * prediction pred = [p_1..p_S, eta_a xyz, eta_m xyz]); when the class probabilities change,
+ * steps 1-3 of filters/vqf_toggling.py:
+ *   confidence      c = max_s p_s / sum_s p_s;  lambda = clip((c - c0) / (1 - c0), 0, 1)
+ *   time constants  ln tau = lambda sum_s (p_s / sum p) ln tau_s + (1 - lambda) ln tau_core
+ *                   for tau_acc, tau_mag and sigma_motion (per-state values TCF_VQFT_LN_*_INIT)
+ *   coefficients    tcf_vqf_mod_from (the core's formulas, float32)
+ * then step 4 (noise removal a - w_a eta_a, m - w_m eta_m) and step 5, the VQF core
+ * (tcf_vqf.{h,c}, tcf_vqf_update_mod) with those coefficients. No prediction (NaN: before the
+ * first full window, or the window was out of the training range) -> the core's own settings.
+ *
+ * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth, earth
+ * frame ENU. Units: gyr rad/s, acc m/s^2, mag uT.
+ *
+ * Memory: all state in one tcf_vqft_t (fixed size, TCF_VQFT_STATE_BYTES; no heap, no globals
+ * written; reentrant: one per sensor). Rate: call tcf_vqft_update once per sample at TCF_FS
+ * (tcf_config.h): window, hop and coefficients are fixed to it; tcf_vqft_update_dt takes
+ * another dt for the gyro integration only (lost samples).
+ *
+ * Bad samples: the policies of tcf_features.h (features) and tcf_vqf.h (core).
+ * Do not compile with -ffast-math (the sources refuse it).
+ */
+#ifndef TCF_VQF_TOGGLING_H
+#define TCF_VQF_TOGGLING_H
+
+#include <stdint.h>
+#include "tcf_features.h"
+#include "tcf_vqf.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+typedef struct tcf_vqft {
+  tcf_vqf_t core;          /* the VQF core (its settings' coefficients inside) */
+  tcf_features_t feat;     /* feature window and held prediction */
+  tcf_vqf_mod_t mod;       /* coefficients in use (steps 1-3 of the last prediction change) */
+  float last_p[TCF_N_CLASSES + 6];  /* the prediction the modulation was made from (NaN: none) */
+  float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
+} tcf_vqft_t;
+
+/* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,
+   the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics */
+#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (16 + TCF_N_CLASSES))
+
+/* Reset: the core's initial state and settings (tcf_vqf_config.h), empty window, no prediction.
+   Returns 0, or -1 if the core refuses the settings (not for an exported configuration). */
+int tcf_vqft_init(tcf_vqft_t *f);
+
+/* One sample at TCF_FS: gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no magnetometer: the features
+   see zeros, and with TCF_USE_MAG == 0 the core ignores mag anyway). */
+void tcf_vqft_update(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3]);
+
+/* Same with the gyro integration step dt [s]. */
+void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt);
+
+/* Steps 1-5 alone with a prediction made elsewhere (VQFTogglingFilter.update with
+   prediction=...): pred[TCF_N_PRED] (NaN = none). The feature window and the trees are not
+   touched. For checks of the filter arithmetic, or when the models run elsewhere. */
+void tcf_vqft_update_pred(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                          const float pred[TCF_N_PRED]);
+
+/* Current orientation q[4] = [w x y z], sensor -> ENU. */
+void tcf_vqft_quat(const tcf_vqft_t *f, float q[4]);
+
+/* Held prediction pred[TCF_N_PRED]; returns 0 when there is none (NaN), else 1. */
+int tcf_vqft_prediction(const tcf_vqft_t *f, float pred[TCF_N_PRED]);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* TCF_VQF_TOGGLING_H */

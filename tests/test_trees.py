@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import xgboost as xgb
 
-from togglecf.learn.trees import FlatForest
+from togglecf.learn.trees import COMPLETE_MAX_DEPTH, FlatForest, predict_margin_row_complete
 
 # xgboost sums leaves in float32; we sum in float64: differences are float32 rounding of the
 # margin (~1e-7 relative), far below the 1e-5 the export must meet.
@@ -71,3 +71,46 @@ def test_concatenated_forest_gives_each_models_margins(rng):
     np.testing.assert_array_equal(m[:, 4], b.predict_margin(X)[:, 0])
     with pytest.raises(ValueError, match="share their number of features"):
         FlatForest.concatenate([a, FlatForest.from_booster(xgb.train({}, xgb.DMatrix(X[:, :3], label=y), 1))])
+
+
+def _complete_margins(forest, X):
+    cf = forest.complete()
+    arrays = cf.arrays()
+    out = np.empty((len(X), forest.n_outputs))
+    for i in range(len(X)):
+        predict_margin_row_complete(X[i], *arrays, out[i])
+    return out
+
+
+def test_complete_forest_gives_the_same_margins_bit_for_bit(rng):
+    """The padded breadth-first layout walked eight trees at a time (the filter loop's) equals the
+    plain walk exactly: missing values, ±inf, trees of mixed and partial depths, a block remainder."""
+    X = data(rng, 1000).astype(np.float64)
+    y = (np.nan_to_num(X[:, 0]) > 0).astype(int) + (np.nan_to_num(X[:, 1]) > 0)
+    clf = xgb.train({"objective": "multi:softprob", "num_class": 3, "max_depth": 5, "seed": 0},
+                    xgb.DMatrix(X, label=y, missing=np.nan), 7)
+    reg = xgb.train({"objective": "reg:squarederror", "max_depth": 3, "seed": 0, "min_child_weight": 50},
+                    xgb.DMatrix(X, label=np.nan_to_num(X[:, 2])), 5)
+    X[rng.random(X.shape) < 0.03] = np.inf
+    X[rng.random(X.shape) < 0.03] = -np.inf
+    both = FlatForest.concatenate([FlatForest.from_booster(clf), FlatForest.from_booster(reg)])
+    depths = both.depths()
+    assert len(set(depths.tolist())) > 1  # blocks pad trees of different depths
+    np.testing.assert_array_equal(_complete_margins(both, X), both.predict_margin(X))
+    kept = both.without_outputs([1, 3])  # a subset of the trees (the filter's walked ones), 13 trees: a remainder
+    np.testing.assert_array_equal(_complete_margins(kept, X), kept.predict_margin(X))
+
+
+def test_complete_forest_refuses_what_it_cannot_lay_out(rng):
+    X = data(rng, 300)
+    reg = xgb.train({"objective": "reg:squarederror", "max_depth": 3, "seed": 0}, xgb.DMatrix(X, label=np.nan_to_num(X[:, 0])), 2)
+    f = FlatForest.from_booster(reg)
+    inner = np.flatnonzero(f.feature >= 0)
+    f.threshold = f.threshold.copy()
+    f.threshold[inner[0]] = -np.inf
+    with pytest.raises(ValueError, match="-inf"):
+        f.complete()
+    deep = FlatForest.from_booster(reg)
+    deep.depths = lambda: np.full(len(deep.roots), COMPLETE_MAX_DEPTH + 1)
+    with pytest.raises(ValueError, match="deeper"):
+        deep.complete()

@@ -59,7 +59,9 @@ class FeatureCoefficients(NamedTuple):
     gravity: float
 
 
-@njit(cache=True)
+# inline: called once per sample from the filter loop (``toggling.inloop``), where a call of its own
+# (arguments unpacked, each array reference-counted) took as long as the work: 0.067 -> 0.033 µs/sample
+@njit(cache=True, inline="always")
 def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     """Append one sample's channels (definitions in ``togglecf.features.windows``)."""
     fs, L, lam_ref, lam_lp, g = params.fs, params.window_length, params.ref_decay, params.lp_decay, params.gravity
@@ -117,36 +119,45 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
 
 @njit(cache=True)
 def window_features(ring, aux, out):
-    """Feature row of the window ending at the last pushed sample (needs ``L`` samples)."""
+    """Feature row of the window ending at the last pushed sample (needs ``L`` samples).
+
+    Rows outer, channels inner (the ring is row-major; every channel still sums its samples in
+    ring order, so the values are those of a per-channel loop bit for bit; ~10 % faster)."""
     L = ring.shape[0]
     nw = ring.shape[1] - 1
+    acc = np.empty((4, nw))
+    s, lo, hi, ss = acc[0], acc[1], acc[2], acc[3]
     for c in range(nw):
-        s = 0.0
-        lo = ring[0, c]
-        hi = ring[0, c]
-        for i in range(L):
+        s[c] = 0.0
+        lo[c] = ring[0, c]
+        hi[c] = ring[0, c]
+        ss[c] = 0.0
+    e = 0.0
+    for i in range(L):
+        for c in range(nw):
             v = ring[i, c]
-            s += v
-            if v < lo:
-                lo = v
-            if v > hi:
-                hi = v
-        if not math.isfinite(s):  # a non-finite value in the window: the channel's stats are missing
+            s[c] += v
+            if v < lo[c]:
+                lo[c] = v
+            if v > hi[c]:
+                hi[c] = v
+        e += ring[i, nw]
+    for c in range(nw):
+        s[c] = s[c] / L  # the mean (non-finite with a non-finite value in the window: then unused)
+    for i in range(L):
+        for c in range(nw):
+            d = ring[i, c] - s[c]
+            ss[c] += d * d
+    for c in range(nw):
+        if not math.isfinite(s[c]):  # (the mean: finite iff the sum is) a non-finite value in the window:
+            # the channel's stats are missing
             for j in range(4):
                 out[4 * c + j] = math.nan
             continue
-        mean = s / L
-        ss = 0.0
-        for i in range(L):
-            d = ring[i, c] - mean
-            ss += d * d
-        out[4 * c] = mean
-        out[4 * c + 1] = math.sqrt(ss / L)
-        out[4 * c + 2] = lo
-        out[4 * c + 3] = hi
-    e = 0.0
-    for i in range(L):
-        e += ring[i, nw]
+        out[4 * c] = s[c]
+        out[4 * c + 1] = math.sqrt(ss[c] / L)
+        out[4 * c + 2] = lo[c]
+        out[4 * c + 3] = hi[c]
     out[4 * nw] = e / L if math.isfinite(e) else math.nan
     n_last = aux.shape[0] - 10
     for j in range(n_last):

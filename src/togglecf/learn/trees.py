@@ -12,6 +12,12 @@ XGBoost's semantics, reproduced exactly:
 * a missing (NaN) feature follows the node's ``default_left`` branch;
 * tree ``t`` adds its leaf value to output ``tree_group[t]`` (the class for multi-class);
 * the base margin is taken from the booster itself (``base_score`` in margin space).
+
+``FlatForest.complete()`` re-lays the same trees out for speed in the filter loop
+(``CompleteForest``, ``predict_margin_row_complete``): each tree padded to a complete binary tree
+stored breadth-first (children of node ``i`` at ``2i+1``, ``2i+2``: no child pointers, one compare
+per level, no data-dependent branch), eight trees walked side by side. Same leaves, same sums in
+the same order: bit-identical margins (test).
 """
 from __future__ import annotations
 
@@ -21,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["FlatForest", "predict_margin_row", "sigmoid", "softmax"]
+__all__ = ["FlatForest", "CompleteForest", "COMPLETE_MAX_DEPTH", "predict_margin_row",
+           "predict_margin_row_complete", "sigmoid", "softmax"]
 
 _SUPPORTED = {"binary:logistic": "sigmoid", "multi:softprob": "softmax", "multi:softmax": "softmax",
               "reg:squarederror": "identity", "reg:pseudohubererror": "identity", "reg:absoluteerror": "identity"}
@@ -143,6 +150,69 @@ class FlatForest:
                           np.ascontiguousarray(self.roots[keep]), np.ascontiguousarray(self.tree_group[keep]),
                           self.base_margin.copy(), self.link, self.n_features)
 
+    def depths(self) -> np.ndarray:
+        """``(n_trees,)`` depth of each tree (0: a single leaf)."""
+        out = np.zeros(len(self.roots), np.int32)
+        for t, root in enumerate(self.roots):
+            stack = [(int(root), 0)]
+            while stack:
+                node, d = stack.pop()
+                if self.feature[node] >= 0:
+                    stack += [(int(self.left[node]), d + 1), (int(self.right[node]), d + 1)]
+                else:
+                    out[t] = max(out[t], d)
+        return out
+
+    def complete(self) -> "CompleteForest":
+        """The same forest as complete binary trees (``CompleteForest``) for
+        ``predict_margin_row_complete``: identical margins, several times faster to walk.
+        Raises ``ValueError`` for trees deeper than ``COMPLETE_MAX_DEPTH`` (the padded layout
+        grows as 2^depth) or a threshold that is NaN or −inf (the missing-value encoding needs
+        ``-inf < threshold``)."""
+        inner = self.feature >= 0
+        if not np.all(self.threshold[inner] > -np.inf):
+            raise ValueError("complete(): a split threshold is NaN or -inf")
+        if np.any(inner & ((self.left < 0) | (self.right < 0))):
+            raise ValueError("complete(): an inner node without children")
+        tree_depth = self.depths()
+        if tree_depth.size and tree_depth.max() > COMPLETE_MAX_DEPTH:
+            raise ValueError(f"complete(): trees deeper than {COMPLETE_MAX_DEPTH} levels")
+        n_trees, F = len(self.roots), self.n_features
+        # every block of _BLOCK trees walked side by side shares one depth: the deepest of the block
+        depth = tree_depth.copy()
+        for b in range(0, n_trees - n_trees % _BLOCK, _BLOCK):
+            depth[b:b + _BLOCK] = tree_depth[b:b + _BLOCK].max()
+        inner_offset = np.zeros(n_trees, np.int32)
+        leaf_offset = np.zeros(n_trees, np.int32)
+        if n_trees:
+            inner_offset[1:] = np.cumsum((1 << depth[:-1].astype(np.int64)) - 1)
+            leaf_offset[1:] = np.cumsum(1 << depth[:-1].astype(np.int64))
+        n_inner = int(inner_offset[-1] + (1 << int(depth[-1])) - 1) if n_trees else 0
+        n_leaf = int(leaf_offset[-1] + (1 << int(depth[-1]))) if n_trees else 0
+        # padding nodes read the constant slot F (0.0) against +inf: always left
+        feature = np.full(n_inner, F, np.int32)
+        threshold = np.full(n_inner, np.inf, np.float32)
+        value = np.zeros(n_leaf, np.float32)
+        for t in range(n_trees):
+            D, io, lo = int(depth[t]), int(inner_offset[t]), int(leaf_offset[t])
+            stack = [(int(self.roots[t]), 0, 0)]  # (node, breadth-first index, level)
+            while stack:
+                node, i, d = stack.pop()
+                if d == D:
+                    value[lo + i - ((1 << D) - 1)] = self.value[node]
+                elif self.feature[node] < 0:  # a leaf above the padded depth: continue left to the bottom
+                    stack.append((node, 2 * i + 1, d + 1))
+                else:
+                    # missing values: the row holds each feature twice, NaN as -inf (goes left) at j and as
+                    # +inf (goes right) at F + 1 + j; a node reads the copy of its default branch
+                    f = int(self.feature[node])
+                    feature[io + i] = f if self.default_left[node] else F + 1 + f
+                    threshold[io + i] = self.threshold[node]
+                    stack.append((int(self.left[node]), 2 * i + 1, d + 1))
+                    stack.append((int(self.right[node]), 2 * i + 2, d + 1))
+        return CompleteForest(feature, threshold, value, inner_offset, leaf_offset, depth.astype(np.int32),
+                              np.ascontiguousarray(self.tree_group, np.int32), self.base_margin.copy(), F)
+
     def _base_margin_from(self, booster) -> np.ndarray:
         """The booster's margin for an all-missing row minus our leaf sum for it (version-proof)."""
         import xgboost as xgb
@@ -180,6 +250,41 @@ class FlatForest:
         return m[:, 0] if self.n_outputs == 1 else m
 
 
+#: deepest tree ``FlatForest.complete`` lays out (2^depth − 1 nodes per tree)
+COMPLETE_MAX_DEPTH = 12
+#: trees walked side by side by ``predict_margin_row_complete`` (independent chains of loads keep the
+#: CPU busy while each waits for its memory; the blocks of this many trees share one padded depth)
+_BLOCK = 8
+
+
+@dataclass
+class CompleteForest:
+    """A ``FlatForest`` with each tree padded to a complete binary tree (``FlatForest.complete``).
+
+    Tree ``t`` has ``2^depth[t] − 1`` inner nodes from ``inner_offset[t]`` (breadth-first: node ``i``
+    has children ``2i+1`` (left) and ``2i+2``) and ``2^depth[t]`` leaves from ``leaf_offset[t]``.
+    A leaf above the full depth continues through padding nodes that always go left. ``feature``
+    indexes the doubled row of ``predict_margin_row_complete``: ``j`` where a missing value goes
+    left, ``n_features + 1 + j`` where it goes right, ``n_features`` (a constant 0.0) for padding
+    (threshold +inf).
+    """
+
+    feature: np.ndarray
+    threshold: np.ndarray
+    value: np.ndarray
+    inner_offset: np.ndarray
+    leaf_offset: np.ndarray
+    depth: np.ndarray
+    tree_group: np.ndarray
+    base_margin: np.ndarray
+    n_features: int
+
+    def arrays(self):
+        """The tuple ``predict_margin_row_complete`` takes after the feature row (with a fresh row buffer)."""
+        return (np.zeros(2 * self.n_features + 2, np.float32), self.feature, self.threshold, self.value,
+                self.inner_offset, self.leaf_offset, self.depth, self.tree_group, self.base_margin)
+
+
 def sigmoid(m):
     return 1.0 / (1.0 + np.exp(-np.asarray(m, float)))
 
@@ -206,6 +311,67 @@ def predict_margin_row(x, feature, threshold, left, right, default_left, value, 
             else:
                 node = right[node]
         out[tree_group[t]] += value[node]
+
+
+@njit(cache=True, inline="always")
+def _level(xs, feature, threshold, base, i):
+    """One level down a complete tree: left (2i+1) when x < threshold, else right (2i+2)."""
+    return 2 * i + 2 - np.int64(xs[feature[base + i]] < threshold[base + i])
+
+
+@njit(cache=True)
+def predict_margin_row_complete(x, xs, feature, threshold, value, inner_offset, leaf_offset, depth, tree_group,
+                                base_margin, out):
+    """``predict_margin_row`` on a ``CompleteForest`` (``CompleteForest.arrays()``; ``xs`` a
+    float32 buffer of ``2 F + 2``): the same margins bit for bit. ``x`` as float32, NaN as −inf
+    at ``j`` and +inf at ``F + 1 + j`` (``x < threshold`` then follows the default branch, and
+    ±inf inputs compare as before); eight trees walked side by side; leaves added in tree order."""
+    F = x.shape[0]
+    for j in range(F):
+        v = np.float32(x[j])
+        if np.isnan(v):
+            xs[j] = -np.inf
+            xs[F + 1 + j] = np.inf
+        else:
+            xs[j] = v
+            xs[F + 1 + j] = v
+    xs[F] = 0.0
+    xs[2 * F + 1] = 0.0
+    for k in range(out.shape[0]):
+        out[k] = base_margin[k]
+    T = inner_offset.shape[0]
+    t = 0
+    while t + 8 <= T:  # blocks of _BLOCK = 8 trees of one (padded) depth
+        D = depth[t]
+        b0, b1, b2, b3 = inner_offset[t], inner_offset[t + 1], inner_offset[t + 2], inner_offset[t + 3]
+        b4, b5, b6, b7 = inner_offset[t + 4], inner_offset[t + 5], inner_offset[t + 6], inner_offset[t + 7]
+        i0 = i1 = i2 = i3 = i4 = i5 = i6 = i7 = 0
+        for _ in range(D):
+            i0 = _level(xs, feature, threshold, b0, i0)
+            i1 = _level(xs, feature, threshold, b1, i1)
+            i2 = _level(xs, feature, threshold, b2, i2)
+            i3 = _level(xs, feature, threshold, b3, i3)
+            i4 = _level(xs, feature, threshold, b4, i4)
+            i5 = _level(xs, feature, threshold, b5, i5)
+            i6 = _level(xs, feature, threshold, b6, i6)
+            i7 = _level(xs, feature, threshold, b7, i7)
+        first = (1 << D) - 1  # breadth-first index of the first leaf
+        out[tree_group[t]] += value[leaf_offset[t] + i0 - first]
+        out[tree_group[t + 1]] += value[leaf_offset[t + 1] + i1 - first]
+        out[tree_group[t + 2]] += value[leaf_offset[t + 2] + i2 - first]
+        out[tree_group[t + 3]] += value[leaf_offset[t + 3] + i3 - first]
+        out[tree_group[t + 4]] += value[leaf_offset[t + 4] + i4 - first]
+        out[tree_group[t + 5]] += value[leaf_offset[t + 5] + i5 - first]
+        out[tree_group[t + 6]] += value[leaf_offset[t + 6] + i6 - first]
+        out[tree_group[t + 7]] += value[leaf_offset[t + 7] + i7 - first]
+        t += 8
+    while t < T:
+        D = depth[t]
+        i = 0
+        for _ in range(D):
+            i = _level(xs, feature, threshold, inner_offset[t], i)
+        out[tree_group[t]] += value[leaf_offset[t] + i - ((1 << D) - 1)]
+        t += 1
 
 
 @njit(cache=True)

@@ -15,63 +15,99 @@ from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.ranges import window_out_of_range
-from togglecf.learn.trees import predict_margin_row
+from togglecf.learn.trees import predict_margin_row, predict_margin_row_complete
 
-__all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "inloop_step", "inloop_batch"]
+__all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "hop_predict", "inloop_step",
+           "inloop_batch", "params_by_value"]
 
 
 # cache=False as filters.base.run_batch: numba cannot cache a function that takes another compiled
 # function as an argument (pickling the dispatcher type fails: "underlying object has vanished")
 @njit(cache=False)
-def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes,
-                feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                feat, margin, pred, low, high, max_out_of_range, fallback):
+def hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range, fallback):
+    """At a window end: the window's features, then either ``pred`` from the trees (``predict(feat,
+    *forest, margin)``: ``learn.trees.predict_margin_row_complete`` with ``CompleteForest.arrays()``,
+    or ``predict_margin_row`` with ``FlatForest.arrays()``; softmax over the class margins) and
+    ``fallback[0] = 0``, or, when the features are out of the training range (``learn.ranges``),
+    ``pred`` NaN (no prediction: the filter's default) and ``fallback[0] = 1``."""
+    window_features(ring, aux, feat)
+    if window_out_of_range(feat, low, high, max_out_of_range):
+        fallback[0] = 1.0
+        pred[:] = math.nan
+        return
+    fallback[0] = 0.0
+    predict(feat, *forest, margin)
+    mx = margin[0]
+    for s in range(1, n_classes):
+        mx = max(mx, margin[s])
+    tot = 0.0
+    for s in range(n_classes):
+        pred[s] = math.exp(margin[s] - mx)  # softmax of the class margins
+        tot += pred[s]
+    for s in range(n_classes):
+        pred[s] /= tot
+    for j in range(N_PRED_NOISE):
+        pred[n_classes + j] = margin[n_classes + j]
+
+
+@njit(cache=False)
+def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes, predict,
+                forest, feat, margin, pred, low, high, max_out_of_range, fallback):
     """One sample with the models in the loop: push features; at a window end (every ``hop``
-    samples once the window is full) evaluate the trees into ``pred`` (held until the next
-    hop), or, when the window's features are out of the training range (``learn.ranges``),
-    set ``pred`` to NaN (no prediction: the filter's default) and ``fallback[0]`` to 1; then the
-    filter's ``step`` with that prediction."""
+    samples once the window is full) ``hop_predict`` updates ``pred`` (held until the next hop)
+    and ``fallback``; then the filter's ``step`` with that prediction."""
     push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
     L = ring.shape[0]
     count = int(aux[0])
     if count >= L and (count - L) % hop == 0:
-        window_features(ring, aux, feat)
-        if window_out_of_range(feat, low, high, max_out_of_range):
-            fallback[0] = 1.0
-            pred[:] = math.nan
-            step(state, params, gyr, acc, mag, dt, pred, diag)
-            return
-        fallback[0] = 0.0
-        predict_margin_row(feat, feature, threshold, left, right, default_left, value, roots, tree_group,
-                           base_margin, margin)
-        mx = margin[0]
-        for s in range(1, n_classes):
-            mx = max(mx, margin[s])
-        tot = 0.0
-        for s in range(n_classes):
-            pred[s] = math.exp(margin[s] - mx)  # softmax of the class margins
-            tot += pred[s]
-        for s in range(n_classes):
-            pred[s] /= tot
-        for j in range(N_PRED_NOISE):
-            pred[n_classes + j] = margin[n_classes + j]
+        hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range, fallback)
     step(state, params, gyr, acc, mag, dt, pred, diag)
 
 
 @njit(cache=False)
-def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes,
-                 feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
+def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes, predict, forest,
                  feat, margin, pred, low, high, max_out_of_range, fallback, quat_out, diag_out, pred_out, fallback_out):
+    """``inloop_step`` over all samples, written out here for speed (same results bit for bit):
+    a call of ``inloop_step`` per sample (some 30 arguments, the arrays among them
+    reference-counted) cost as much as the whole VQF core; the samples go to ``push_sample`` and
+    ``step`` as tuples and the step writes a scratch ``diag`` (row views of the input arrays,
+    each reference-counted, cost 0.1 µs per sample); ``params`` as from ``params_by_value``."""
+    L = ring.shape[0]
+    diag = np.zeros(diag_out.shape[1])
+    # the sample count after the next window end's push (as inloop_step's test, without a division per sample)
+    done = int(aux[0])
+    next_end = L if done < L else L + ((done - L) // hop + 1) * hop
     for i in range(gyr.shape[0]):
-        inloop_step(step, state, params, gyr[i], acc[i], mag[i], dt[i], diag_out[i], ring, aux, fparams, last_src, hop,
-                    n_classes, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin,
-                    feat, margin, pred, low, high, max_out_of_range, fallback)
+        g = (gyr[i, 0], gyr[i, 1], gyr[i, 2])
+        a = (acc[i, 0], acc[i, 1], acc[i, 2])
+        m = (mag[i, 0], mag[i, 1], mag[i, 2])
+        push_sample(ring, aux, fparams, last_src, g, a, m)
+        if done + i + 1 == next_end:
+            next_end += hop
+            hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range,
+                        fallback)
+        for j in range(diag.shape[0]):
+            diag[j] = 0.0  # as a fresh row of diag_out: a step need not write every entry
+        step(state, params, g, a, m, dt[i], pred, diag)
+        for j in range(diag.shape[0]):
+            diag_out[i, j] = diag[j]
         quat_out[i, 0] = state[0]
         quat_out[i, 1] = state[1]
         quat_out[i, 2] = state[2]
         quat_out[i, 3] = state[3]
-        pred_out[i] = pred
+        for j in range(pred.shape[0]):
+            pred_out[i, j] = pred[j]
         fallback_out[i] = fallback[0]
+
+
+def params_by_value(params):
+    """``params`` (a coefficients record) with its non-empty 1-D float arrays as tuples of the same
+    values: numba reference-counts every array of a record at each call of the filter's step
+    (measured 0.08 µs per sample for the five arrays of ``VQFTogglingCoefficients``, a quarter of the
+    VQF core), while a tuple of floats is passed as plain values. The steps only index these fields."""
+    conv = {k: tuple(float(x) for x in v) for k, v in params._asdict().items()
+            if isinstance(v, np.ndarray) and v.ndim == 1 and v.size and v.dtype == np.float64}
+    return params._replace(**conv) if conv else params
 
 
 class InLoopModels:
@@ -105,6 +141,19 @@ class InLoopModels:
         self.hop = hop_length(self.fs, models.feature_settings.hop_s)
         self._reset_model_state()
 
+    @property
+    def forest(self):
+        """The ``FlatForest`` this filter walks (set: also lays it out for the loop)."""
+        return self._forest
+
+    @forest.setter
+    def forest(self, forest):
+        self._forest = forest
+        try:  # the same trees laid out to walk faster (identical margins); very deep trees keep the plain walk
+            self._predict, self._forest_arrays = predict_margin_row_complete, forest.complete().arrays()
+        except ValueError:
+            self._predict, self._forest_arrays = predict_margin_row, forest.arrays()
+
     def _reset_model_state(self):
         self._features.ring[:] = 0.0
         self._features.aux[:] = 0.0
@@ -133,9 +182,15 @@ class InLoopModels:
         self.pred[:] = state[c:d]
         self.fallback[:] = state[d:]
 
+    def _loop_params(self):
+        """``params_by_value(self.params)``, rebuilt when ``self.params`` is replaced."""
+        if getattr(self, "_loop_params_of", None) is not self.params:
+            self._loop_params_of, self._loop_params_value = self.params, params_by_value(self.params)
+        return self._loop_params_value
+
     def _model_args(self):
         return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
-                len(self.models.class_names), *self.forest.arrays(), self._feat, self._margin, self.pred,
+                len(self.models.class_names), self._predict, self._forest_arrays, self._feat, self._margin, self.pred,
                 self.models.feature_low, self.models.feature_high, self.models.max_out_of_range, self.fallback)
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
@@ -143,7 +198,7 @@ class InLoopModels:
             raise ValueError(f"{type(self).__name__} predicts itself; pass predictions to the filter without models")
         g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
                                        None if mag is None else np.reshape(mag, (1, 3)), dt)
-        inloop_step(type(self).step, self.state, self.params, g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
+        inloop_step(type(self).step, self.state, self._loop_params(), g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
         return self.quat
 
     def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
@@ -155,7 +210,7 @@ class InLoopModels:
         diag_out = np.zeros((n, len(self.diagnostic_names)))
         pred_out = np.empty((n, self.n_predictions))
         fallback_out = np.empty(n)
-        inloop_batch(type(self).step, self.state, self.params, g, a, m, dt_arr, *self._model_args(), quat_out, diag_out,
+        inloop_batch(type(self).step, self.state, self._loop_params(), g, a, m, dt_arr, *self._model_args(), quat_out, diag_out,
                      pred_out, fallback_out)
         if n:
             self._diag[:] = diag_out[-1]

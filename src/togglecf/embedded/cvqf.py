@@ -63,20 +63,22 @@ from togglecf.filters.vqf_core import VQFCoreSettings
 __all__ = ["export_c_vqf", "vqf_config_header", "build_vqf_harness", "run_vqf_harness", "VQF_TEMPLATES", "VQF_SOURCES",
            "measure_vqf_state_bytes", "DIAG_NAMES"]
 
-VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_harness.c", "tcf_csv.h")
-VQF_SOURCES = ("tcf_vqf.c",)
+VQF_TEMPLATES = ("tcf_vqf.h", "tcf_vqf.c", "tcf_vqf_standalone.c", "tcf_vqf_harness.c", "tcf_csv.h")
+#: the core's firmware sources: tcf_vqf.c (what the learned filter drives too) and the standalone API
+#: (default parameters, bias and heading-offset getters)
+VQF_SOURCES = ("tcf_vqf.c", "tcf_vqf_standalone.c")
 #: columns of ``tcf_vqf_harness --diag`` after w,x,y,z (= VQFCoreFilter.diagnostic_names)
 DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
 _BOOL_SETTINGS = {"motion_bias_est_enabled", "rest_bias_est_enabled", "mag_dist_rejection_enabled"}
 
-_MAKEFILE = """# Host build of the exported VQF core (see tcf_vqf.h). For a firmware build, add tcf_vqf.c
-# (+ tcf_vqf.h, and tcf_vqf_config.h for TCF_VQF_PARAMS_INIT) to the project; nothing else.
+_MAKEFILE = """# Host build of the exported VQF core (see tcf_vqf.h). For a firmware build, add tcf_vqf.c and
+# tcf_vqf_standalone.c (+ tcf_vqf.h, and tcf_vqf_config.h for TCF_VQF_PARAMS_INIT) to the project.
 # Never add -ffast-math (tcf_vqf.c refuses it: the bad-sample tests need NaN semantics).
 CC ?= gcc
 CFLAGS ?= {cflags}
 
-tcf_vqf_harness: tcf_vqf_harness.c tcf_csv.h tcf_vqf.c tcf_vqf.h tcf_vqf_config.h
-\t$(CC) $(CFLAGS) -o $@ tcf_vqf_harness.c tcf_vqf.c -lm
+tcf_vqf_harness: tcf_vqf_harness.c tcf_csv.h tcf_vqf.c tcf_vqf_standalone.c tcf_vqf.h tcf_vqf_config.h
+\t$(CC) $(CFLAGS) -o $@ tcf_vqf_harness.c tcf_vqf.c tcf_vqf_standalone.c -lm
 
 clean:
 \trm -f tcf_vqf_harness
@@ -176,8 +178,8 @@ def _link_arm(out_dir: Path) -> dict | None:
         elf = Path(tmp) / "fw.elf"
         try:
             run_command([ARM_GCC, *ARM_FLAGS, "-Os", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
-                         "--specs=nano.specs", "--specs=nosys.specs", f"-I{out_dir}", main, out_dir / "tcf_vqf.c",
-                         "-o", elf, "-lm"])
+                         "--specs=nano.specs", "--specs=nosys.specs", f"-I{out_dir}", main,
+                         *(out_dir / f for f in VQF_SOURCES), "-o", elf, "-lm"])
         except RuntimeError:
             return None  # no newlib for the target: the object sizes still stand
         line = run_command([size_tool, elf]).splitlines()[1].split()
@@ -185,13 +187,21 @@ def _link_arm(out_dir: Path) -> dict | None:
     return {"text": text, "data": data, "bss": bss, "flash": text + data}
 
 
+def _sum_sizes(sizes) -> dict | None:
+    """text/data/bss/total summed over objects (None if any is None: no cross compiler)."""
+    if any(x is None for x in sizes):
+        return None
+    return {k: sum(x[k] for x in sizes) for k in sizes[0]}
+
+
 def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, use_mag: bool = True, *,
                  sizes: bool = True) -> dict:
     """Write the C VQF core for rate ``fs`` [Hz] and ``settings`` (default: VQF's) into
     ``out_dir``; returns the report (also ``out_dir/vqf_report.json``): ``files``, ``fs``,
     ``use_mag``, ``settings``, ``state_bytes`` (sizeof(tcf_vqf_t), gcc) and, with ``sizes``,
-    ``object_sizes`` {host, riscv, arm} of ``tcf_vqf.c`` (-Os; None where a cross compiler is
-    missing), ``stack`` {riscv, arm} of the ``tcf_vqf_update`` call chain, and the linked
+    ``object_sizes`` {host, riscv, arm} of ``VQF_SOURCES`` together (text + data + bss summed over
+    the two objects; -Os; None where a cross compiler is missing), ``stack`` {riscv, arm} of the
+    ``tcf_vqf_update`` call chain (all in ``tcf_vqf.c``), and the linked
     program sizes ``linked_riscv`` (picolibc) / ``linked_arm`` (newlib-nano)."""
     if not (isinstance(fs, (int, float, np.floating)) and math.isfinite(fs) and fs > 0):
         raise ValueError(f"fs must be a positive sampling rate in Hz, got {fs!r}")
@@ -211,12 +221,15 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
               "settings": asdict(settings), "coefficients": "derived in C by tcf_vqf_init (float32)",
               "state_bytes": measure_vqf_state_bytes(out_dir)}
     if sizes:
-        src = out_dir / "tcf_vqf.c"
-        s = measure_sizes([src], [out_dir], riscv=True)[str(src)]
-        report["object_sizes"] = {"host": s["host"], "riscv": s["riscv"], "arm": arm_object_size(src, [out_dir])}
+        srcs = [out_dir / f for f in VQF_SOURCES]
+        per = measure_sizes(srcs, [out_dir], riscv=True)
+        arm = [arm_object_size(f, [out_dir]) for f in srcs]
+        report["object_sizes"] = {"host": _sum_sizes([per[str(f)]["host"] for f in srcs]),
+                                  "riscv": _sum_sizes([per[str(f)]["riscv"] for f in srcs]), "arm": _sum_sizes(arm)}
+        src = srcs[0]
         report["stack"] = {"riscv": _riscv_stack_usage(src, [out_dir], "tcf_vqf_update"),
                            "arm": arm_stack_usage(src, [out_dir], "tcf_vqf_update")}
-        report["linked_riscv"] = link_riscv([src], [out_dir], _LINK_MAIN)
+        report["linked_riscv"] = link_riscv(srcs, [out_dir], _LINK_MAIN)
         report["linked_arm"] = _link_arm(out_dir)
     atomic_write_json(out_dir / "vqf_report.json", report)
     return report
@@ -231,7 +244,8 @@ def build_vqf_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     if missing:
         raise FileNotFoundError(f"{out_dir}: missing {', '.join(missing)} (run export_c_vqf first)")
     exe = Path(exe) if exe is not None else out_dir / "tcf_vqf_harness"
-    run_command([gcc, *cflags, "-o", exe, out_dir / "tcf_vqf_harness.c", out_dir / "tcf_vqf.c", f"-I{out_dir}", "-lm"])
+    run_command([gcc, *cflags, "-o", exe, out_dir / "tcf_vqf_harness.c", *(out_dir / f for f in VQF_SOURCES),
+                 f"-I{out_dir}", "-lm"])
     return exe
 
 

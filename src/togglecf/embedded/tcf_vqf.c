@@ -192,37 +192,6 @@ static void bias_update(tcf_vqf_t *f, float ex, float ey, float ez, const float 
 
 /* ------------------------------------------------------------------ set-up */
 
-void tcf_vqf_params_default(tcf_vqf_params_t *p, float fs) {
-  p->fs = fs;
-  p->max_dt = 0.1f;
-  p->use_mag = 1;
-  p->tau_acc = 3.0f;
-  p->tau_mag = 9.0f;
-  p->motion_bias_est_enabled = 1;
-  p->rest_bias_est_enabled = 1;
-  p->mag_dist_rejection_enabled = 1;
-  p->bias_sigma_init = 0.5f;
-  p->bias_forgetting_time = 100.0f;
-  p->bias_clip = 2.0f;
-  p->bias_sigma_motion = 0.1f;
-  p->bias_vertical_forgetting_factor = 0.0001f;
-  p->bias_sigma_rest = 0.03f;
-  p->rest_min_t = 1.5f;
-  p->rest_filter_tau = 0.5f;
-  p->rest_th_gyr = 2.0f;
-  p->rest_th_acc = 0.5f;
-  p->mag_current_tau = 0.05f;
-  p->mag_ref_tau = 20.0f;
-  p->mag_norm_th = 0.1f;
-  p->mag_dip_th = 10.0f;
-  p->mag_new_time = 20.0f;
-  p->mag_new_first_time = 5.0f;
-  p->mag_new_min_gyr = 20.0f;
-  p->mag_min_undisturbed_time = 0.5f;
-  p->mag_max_rejection_time = 60.0f;
-  p->mag_rejection_factor = 2.0f;
-}
-
 /* 1 - exp(-ts / tau), 1 for tau = 0 (gain_from_tau; expm1f keeps it exact for ts << tau) */
 static float gain_from_tau(float tau, float ts) { return tau == 0.0f ? 1.0f : -expm1f(-ts / tau); }
 
@@ -544,16 +513,7 @@ void tcf_vqf_quat(const tcf_vqf_t *f, float q[4]) {
   q[0] = f->q[0]; q[1] = f->q[1]; q[2] = f->q[2]; q[3] = f->q[3];
 }
 
-float tcf_vqf_bias(const tcf_vqf_t *f, float b[3]) {
-  float m = f->bias_p[0];
-  if (f->bias_p[4] > m) m = f->bias_p[4];
-  if (f->bias_p[8] > m) m = f->bias_p[8];
-  b[0] = f->bias[0]; b[1] = f->bias[1]; b[2] = f->bias[2];
-  return sqrtf(m > 0.0f ? m : 0.0f);
-}
-
 int tcf_vqf_rest(const tcf_vqf_t *f) { return f->rest ? 1 : 0; }
 
 int tcf_vqf_mag_disturbed(const tcf_vqf_t *f) { return (f->c.use_mag && f->mag_dist) ? 1 : 0; }
 
-float tcf_vqf_delta(const tcf_vqf_t *f) { return f->delta; }

@@ -41,6 +41,7 @@ from togglecf.embedded.toolchain import (
     measure_sizes,
     need_gcc,
     run_harness_command,
+    run_prediction_harness,
     run_host_program,
     template,
     write_imu_csv,
@@ -368,33 +369,8 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
     ``ns_per_sample`` (the harness's clock() timing of the update calls).
     ``predictions (N, S + 6)``: drive the toggling step with these instead of the trees
     (``tcf_filter_update_pred``; as ``TogglingFilter.update_batch(..., predictions=...)``)."""
-    import pandas as pd
-
-    with tempfile.TemporaryDirectory() as tmp:
-        fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = write_imu_csv(fin, gyr, acc, mag)
-        extra = []
-        if predictions is not None:
-            P = np.asarray(predictions, np.float64)
-            if P.ndim != 2 or P.shape[0] != n:
-                raise ValueError(f"predictions: expected shape ({n}, S + 6), got {P.shape}")
-            fpred = Path(tmp) / "pred.csv"
-            np.savetxt(fpred, P, fmt="%.17g", delimiter=",", header=",".join(f"p{j}" for j in range(P.shape[1])),
-                       comments="")
-            extra = ["--pred", str(fpred)]
-        cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
-               str(fin), str(fout)]
-        res = run_harness_command(exe, cmd)
-        df = pd.read_csv(fout)
-    quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
-    if quat.shape != (n, 4):
-        raise RuntimeError(f"{exe} wrote {quat.shape[0]} rows for {n} samples")
-    if not diagnostics:
-        return quat
-    diag = {c: df[c].to_numpy(np.float64) for c in df.columns if c not in ("w", "x", "y", "z")}
-    diag["ns_per_sample"] = float(res.stderr.split(" ns/sample")[0].rsplit(",", 1)[1]) if " ns/sample" in res.stderr \
-        else math.nan
-    return quat, diag
+    return run_prediction_harness(exe, gyr, acc, mag, diagnostics=diagnostics, no_mag=no_mag,
+                                  predictions=predictions)
 
 
 def harness_features(exe, gyr, acc, mag=None):

@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import shutil
 import tempfile
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -39,15 +38,12 @@ import numpy as np
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.embedded.cfilter import HARNESS_CFLAGS
 from togglecf.embedded.toolchain import (
-    ARM_FLAGS,
-    ARM_GCC,
-    ARM_SIZE,
     RISCV_GCC,
-    arm_available,
     arm_object_size,
     arm_stack_usage,
     c_float,
     call_chain_stack,
+    link_arm,
     link_riscv,
     measure_sizes,
     need_gcc,
@@ -166,27 +162,6 @@ def measure_vqf_state_bytes(out_dir) -> int:
     return int(run_host_program(_SIZE_MAIN, [out_dir], "measuring sizeof(tcf_vqf_t)").strip())
 
 
-def _link_arm(out_dir: Path) -> dict | None:
-    """Size of a linked Cortex-M4F newlib-nano program calling init + update (``-Os``, unused
-    sections dropped): filter + libm float routines + C start-up. None without the toolchain."""
-    if not arm_available():
-        return None
-    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
-    with tempfile.TemporaryDirectory() as tmp:
-        main = Path(tmp) / "main.c"
-        main.write_text(_LINK_MAIN)
-        elf = Path(tmp) / "fw.elf"
-        try:
-            run_command([ARM_GCC, *ARM_FLAGS, "-Os", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
-                         "--specs=nano.specs", "--specs=nosys.specs", f"-I{out_dir}", main,
-                         *(out_dir / f for f in VQF_SOURCES), "-o", elf, "-lm"])
-        except RuntimeError:
-            return None  # no newlib for the target: the object sizes still stand
-        line = run_command([size_tool, elf]).splitlines()[1].split()
-    text, data, bss = (int(v) for v in line[:3])
-    return {"text": text, "data": data, "bss": bss, "flash": text + data}
-
-
 def _sum_sizes(sizes) -> dict | None:
     """text/data/bss/total summed over objects (None if any is None: no cross compiler)."""
     if any(x is None for x in sizes):
@@ -230,7 +205,7 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
         report["stack"] = {"riscv": _riscv_stack_usage(src, [out_dir], "tcf_vqf_update"),
                            "arm": arm_stack_usage(src, [out_dir], "tcf_vqf_update")}
         report["linked_riscv"] = link_riscv(srcs, [out_dir], _LINK_MAIN)
-        report["linked_arm"] = _link_arm(out_dir)
+        report["linked_arm"] = link_arm([out_dir / f for f in VQF_SOURCES], [out_dir], _LINK_MAIN)
     atomic_write_json(out_dir / "vqf_report.json", report)
     return report
 

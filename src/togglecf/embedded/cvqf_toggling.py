@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
-import re
 import shutil
 import tempfile
 from dataclasses import asdict
@@ -58,16 +56,16 @@ from togglecf.embedded.toolchain import (
     arm_object_size,
     c_float,
     call_chain_stack,
+    link_arm,
     link_riscv,
     measure_sizes,
     need_gcc,
     reachable_code_size,
     riscv_flags,
     run_command,
-    run_harness_command,
+    run_prediction_harness,
     run_host_program,
     template,
-    write_imu_csv,
 )
 from togglecf.features.windows import hop_length, window_length
 from togglecf.toggling.gains import GAINS_FILE
@@ -198,27 +196,6 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, filt, window: i
 """
 
 
-def _arm_link(out_dir: Path) -> dict | None:
-    """Size of a linked Cortex-M4F newlib-nano program calling init + update (-Os, unused sections
-    dropped): filter + trees + libm float routines + C start-up. None without the toolchain."""
-    if not arm_available():
-        return None
-    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
-    with tempfile.TemporaryDirectory() as tmp:
-        main = Path(tmp) / "main.c"
-        main.write_text(_LINK_MAIN)
-        elf = Path(tmp) / "fw.elf"
-        try:
-            run_command([ARM_GCC, *ARM_FLAGS, "-Os", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
-                         "--specs=nano.specs", "--specs=nosys.specs", f"-I{out_dir}", main,
-                         *(out_dir / s for s in VQFT_SOURCES), "-o", elf, "-lm"])
-        except RuntimeError:
-            return None
-        line = run_command([size_tool, elf]).splitlines()[1].split()
-    text, data, bss = (int(v) for v in line[:3])
-    return {"text": text, "data": data, "bss": bss, "flash": text + data}
-
-
 #: the API a firmware calls (as _LINK_MAIN): the roots of ``code_bytes_gc``
 _FIRMWARE_ROOTS = ("tcf_vqft_update", "tcf_vqft_init", "tcf_vqft_quat")
 
@@ -346,7 +323,7 @@ def export_c_vqf_toggling(model_dir, out_dir, fs: float, use_mag: bool = True, *
         report["code_bytes_gc"] = _reachable_code(srcs, out_dir)
         report["stack"] = _stack(out_dir)
         report["linked_riscv"] = link_riscv(srcs, [out_dir], _LINK_MAIN)
-        report["linked_arm"] = _arm_link(out_dir)
+        report["linked_arm"] = link_arm([out_dir / f for f in VQFT_SOURCES], [out_dir], _LINK_MAIN)
     atomic_write_json(out_dir / "vqf_toggling_report.json", report)
     return report
 
@@ -375,30 +352,5 @@ def run_vqft_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_m
     (``p_<class>``, ``eta_acc_x`` ...), ``DIAG_NAMES`` per sample and ``ns_per_sample``.
     ``predictions (N, S + 6)``: drive steps 1-5 with these instead of the trees
     (``tcf_vqft_update_pred``; as ``VQFTogglingFilter.update_batch(..., predictions=...)``)."""
-    import pandas as pd
-
-    with tempfile.TemporaryDirectory() as tmp:
-        fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = write_imu_csv(fin, gyr, acc, mag)
-        extra = []
-        if predictions is not None:
-            P = np.asarray(predictions, np.float64)
-            if P.ndim != 2 or P.shape[0] != n:
-                raise ValueError(f"predictions: expected shape ({n}, S + 6), got {P.shape}")
-            fpred = Path(tmp) / "pred.csv"
-            np.savetxt(fpred, P, fmt="%.17g", delimiter=",", header=",".join(f"p{j}" for j in range(P.shape[1])),
-                       comments="")
-            extra = ["--pred", str(fpred)]
-        cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
-               str(fin), str(fout)]
-        res = run_harness_command(exe, cmd)
-        df = pd.read_csv(fout)
-    quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
-    if quat.shape != (n, 4):
-        raise RuntimeError(f"{exe} wrote {quat.shape[0]} rows for {n} samples")
-    if not diagnostics:
-        return quat
-    diag = {c: df[c].to_numpy(np.float64) for c in df.columns if c not in ("w", "x", "y", "z")}
-    m = re.search(r"([0-9.]+) ns/sample", res.stderr)
-    diag["ns_per_sample"] = float(m.group(1)) if m else math.nan
-    return quat, diag
+    return run_prediction_harness(exe, gyr, acc, mag, diagnostics=diagnostics, no_mag=no_mag,
+                                  predictions=predictions)

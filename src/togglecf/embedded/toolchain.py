@@ -16,7 +16,8 @@ import numpy as np
 
 __all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
            "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
-           "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv", "reachable_code_size"]
+           "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv", "link_arm", "reachable_code_size",
+           "run_prediction_harness"]
 
 RISCV_GCC = "riscv64-unknown-elf-gcc"
 
@@ -148,6 +149,28 @@ def link_riscv(c_files, include_dirs, main_source: str, defines=()) -> dict | No
     return {"text": text, "data": data, "bss": bss, "flash": text + data}
 
 
+def link_arm(c_files, include_dirs, main_source: str) -> dict | None:
+    """Size of a linked Cortex-M4F newlib-nano program (``main_source`` + ``c_files``; -Os, unused
+    sections dropped): the code, libm float routines and C start-up. None without the toolchain
+    or its newlib (the object sizes still stand)."""
+    if not arm_available():
+        return None
+    size_tool = ARM_SIZE if shutil.which(ARM_SIZE) else "size"
+    with tempfile.TemporaryDirectory() as tmp:
+        main = Path(tmp) / "main.c"
+        main.write_text(main_source)
+        elf = Path(tmp) / "fw.elf"
+        try:
+            run_command([ARM_GCC, *ARM_FLAGS, "-Os", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
+                         "--specs=nano.specs", "--specs=nosys.specs", *[f"-I{d}" for d in include_dirs], main,
+                         *c_files, "-o", elf, "-lm"])
+        except RuntimeError:
+            return None
+        line = run_command([size_tool, elf]).splitlines()[1].split()
+    text, data, bss = (int(v) for v in line[:3])
+    return {"text": text, "data": data, "bss": bss, "flash": text + data}
+
+
 def reachable_code_size(compiler, flags, size_tool, c_files, include_dirs, roots) -> dict:
     """``{text, data, bss, total}`` of the part of ``c_files`` a firmware link keeps when it calls
     only the functions ``roots``: each file compiled ``-Os -ffunction-sections -fdata-sections``,
@@ -249,6 +272,43 @@ def run_harness_command(exe, cmd):
     if res.returncode != 0:
         raise RuntimeError(f"{exe} failed ({res.returncode}): {res.stderr.strip()}")
     return res
+
+
+def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False,
+                           predictions=None):
+    """Run a learned filter's host harness (``tcf_harness``, ``tcf_vqf_toggling_harness``: the same
+    command line) on ``(N, 3)`` arrays. ``mag=None``: a 6-column CSV (the filter gets ``mag =
+    NULL``); ``no_mag``: NULL although mag is given; ``predictions (N, S + 6)``: drive the filter
+    step with these instead of the trees (``--pred``). Returns the quaternions ``(N, 4)`` float64,
+    or with ``diagnostics`` ``(quat, dict)``: every other output column per sample and
+    ``ns_per_sample`` (the harness's clock() timing of the update calls; NaN if not printed)."""
+    import pandas as pd  # optional heavy dependency, only for reading the harness's CSV
+
+    with tempfile.TemporaryDirectory() as tmp:
+        fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
+        n = write_imu_csv(fin, gyr, acc, mag)
+        extra = []
+        if predictions is not None:
+            P = np.asarray(predictions, np.float64)
+            if P.ndim != 2 or P.shape[0] != n:
+                raise ValueError(f"predictions: expected shape ({n}, S + 6), got {P.shape}")
+            fpred = Path(tmp) / "pred.csv"
+            np.savetxt(fpred, P, fmt="%.17g", delimiter=",", header=",".join(f"p{j}" for j in range(P.shape[1])),
+                       comments="")
+            extra = ["--pred", str(fpred)]
+        cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
+               str(fin), str(fout)]
+        res = run_harness_command(exe, cmd)
+        df = pd.read_csv(fout)
+    quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
+    if quat.shape != (n, 4):
+        raise RuntimeError(f"{exe} wrote {quat.shape[0]} rows for {n} samples")
+    if not diagnostics:
+        return quat
+    diag = {c: df[c].to_numpy(np.float64) for c in df.columns if c not in ("w", "x", "y", "z")}
+    m = re.search(r"([0-9.]+) ns/sample", res.stderr)
+    diag["ns_per_sample"] = float(m.group(1)) if m else float("nan")
+    return quat, diag
 
 
 def write_imu_csv(path, gyr, acc, mag=None, dt=None, float32: bool = False) -> int:

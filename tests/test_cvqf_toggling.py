@@ -195,9 +195,14 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
     np.testing.assert_array_equal(dc["rest"], ref.diagnostics["rest"])
 
 
-def test_fallback_fires_as_in_python(model_dir, mini_trial, tmp_path):
+def test_fallback_fires_as_in_python(model_dir, mini_trial, mini_kind, tmp_path):
     """With max_out_of_range = 0 (one feature out of range is enough) the fallback fires often; C
-    and Python refuse the same windows, and the filter then runs the core's own settings."""
+    and Python refuse the same windows, and the filter then runs the core's own settings. Where
+    a float32 feature flips a fallback decision or a split (this is the tiny model's training
+    cut), the C output equals Python driven by C's own held predictions (NaN rows included) to
+    float32 arithmetic; the in-loop bound of the module docstring was measured on the real cut."""
+    from togglecf.filters.vqf_toggling import VQFTogglingFilter
+
     d = tmp_path / "m0"
     shutil.copytree(model_dir, d)
     meta = json.loads((d / "metadata.json").read_text())
@@ -213,7 +218,13 @@ def test_fallback_fires_as_in_python(model_dir, mini_trial, tmp_path):
     agree = (dc["fallback"] == fb).mean()
     assert agree >= 0.97, f"fallback agrees at {agree:.3%} of the samples"
     assert np.all(dc["trust"][dc["fallback"] == 1] == 0.0)  # no prediction: the core's own values
-    assert _angles_deg(qc, py.quat).max() <= IN_LOOP_TOL["mini"][0]  # the mini cut: tree flips (docstring)
+    C = np.stack([dc[k] for k in _pred_names(rep)], axis=1)
+    f, _ = _python(d, mini_trial, True)
+    ref_c = VQFTogglingFilter(mini_trial.fs, f.settings).update_batch(mini_trial.gyr, mini_trial.acc, mini_trial.mag,
+                                                                       predictions=C)
+    assert _angles_deg(qc, ref_c.quat).max() <= ARITH_TOL["mini"]
+    if mini_kind == "broad":  # the real cut: measured 0.060° (module docstring)
+        assert _angles_deg(qc, py.quat).max() <= IN_LOOP_TOL["mini"][0]
 
 
 def test_bad_samples_do_not_poison_the_c_state(exported, model_dir, mini_trial):

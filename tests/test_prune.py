@@ -28,6 +28,26 @@ def test_choose_point_takes_the_most_accurate_within_the_budget():
         prune.choose_point(rows, 9)
 
 
+def test_tie_verdicts_against_the_reference():
+    """A point whose per-trial errors move by less than their spread around the reference's is a
+    tie (Wilcoxon p >= 0.05); one worse on all 25 trials is worse; rows without per-trial errors
+    get no verdict."""
+    rng = np.random.default_rng(0)
+    base = {f"t{i:02d}": 2.0 + rng.random() for i in range(25)}
+    noisy = {k: v + rng.normal(0.0, 0.3) for k, v in base.items()}  # no systematic shift
+    worse = {k: v + 0.2 + 0.01 * i for i, (k, v) in enumerate(base.items())}  # every trial worse
+    rows = [{**_row("ref", 50, 2.5, reference=True), "trial_totals": base},
+            {**_row("noisy", 20, 2.5), "trial_totals": noisy}, {**_row("worse", 10, 2.8), "trial_totals": worse},
+            _row("old", 30, 2.4)]
+    v = {r["key"]: (r["vs_reference"], r["p_vs_reference"]) for r in prune.tie_verdicts(rows)}
+    assert v["ref"] == ("reference", None) and v["old"] == ("", None)
+    assert v["noisy"][0] == "tie" and v["noisy"][1] >= 0.05
+    assert v["worse"][0] == "worse" and v["worse"][1] < 1e-4  # 25 of 25 positive differences
+    full = [{**r, "features_used": 74, "us_per_prediction": 1.0} for r in rows]
+    text = prune.format_front(full)
+    assert "vs ref" in text and "tie p=" in text
+
+
 def test_points_apply_to_a_config_copy_and_the_grid_runs_the_reference_once():
     cfg = {"run": {"max_features": 0, "seed": 0}, "classifier": {"n_estimators": 10, "max_depth": 3},
            "regressor": {"n_estimators": 10, "max_depth": 3}}

@@ -23,7 +23,8 @@ from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write
 from togglecf.learn.labels import make_targets
 from togglecf.report.style import color, style
 
-__all__ = ["MAIN_FILTERS", "LABELS", "ABLATION_ROWS", "ABLATION_LABELS", "write_report", "rewrite_summary", "paired_comparison", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
+__all__ = ["MAIN_FILTERS", "LABELS", "ABLATION_ROWS", "ABLATION_LABELS", "write_report", "rewrite_summary", "paired_comparison",
+           "paired_test", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
 
 MAIN_FILTERS = ("vqf_toggling", "toggling", "vqf", "vqf_core_defaults", "vqf_core", "madgwick", "madgwick_rest_bias",
                 "cf", "mahony", "aqua", "ekf")
@@ -167,6 +168,17 @@ def _summary(df, per_group, result) -> str:
     return "\n".join(lines)
 
 
+def paired_test(diff) -> dict:
+    """Paired per-trial comparison from the differences ``diff = a − b`` [°] over trials: wins,
+    ties (|Δ| < ``TIE_DEG``) and losses of a, the mean Δ, the two-sided Wilcoxon signed-rank p
+    (1 when every Δ is 0), and ``tie``: p ≥ 0.05, no evidence of a difference."""
+    d = np.asarray(diff, np.float64)
+    wins, losses = int(np.sum(d < -TIE_DEG)), int(np.sum(d > TIE_DEG))
+    p = float(wilcoxon(d).pvalue) if np.any(d != 0) else 1.0
+    return {"n": len(d), "wins": wins, "ties": len(d) - wins - losses, "losses": losses, "mean": float(np.mean(d)),
+            "p": p, "tie": p >= 0.05}
+
+
 def paired_comparison(wide: pd.DataFrame) -> list[str]:
     """Markdown lines: for each pair of ``PAIRS`` present, per-trial wins/ties/losses of the first
     filter (total RMSE, tie band ``TIE_DEG``), the mean difference and the two-sided Wilcoxon
@@ -179,11 +191,10 @@ def paired_comparison(wide: pd.DataFrame) -> list[str]:
         d = (both[a] - both[b]).to_numpy()
         if len(d) < 2:
             continue
-        wins, losses = int(np.sum(d < -TIE_DEG)), int(np.sum(d > TIE_DEG))
-        p = float(wilcoxon(d).pvalue) if np.any(d != 0) else 1.0
-        verdict = ("tie (p ≥ 0.05)" if p >= 0.05 else (f"{a} better" if np.mean(d) < 0 else f"{b} better"))
-        rows.append(f"| {a} vs {b} | {len(d)} | {wins} / {len(d) - wins - losses} / {losses} | {np.mean(d):+.2f} | "
-                    f"{p:.3g} | {verdict} |")
+        t = paired_test(d)
+        verdict = "tie (p ≥ 0.05)" if t["tie"] else (f"{a} better" if t["mean"] < 0 else f"{b} better")
+        rows.append(f"| {a} vs {b} | {t['n']} | {t['wins']} / {t['ties']} / {t['losses']} | {t['mean']:+.2f} | "
+                    f"{t['p']:.3g} | {verdict} |")
     if not rows:
         return []
     return ["## Paired per-trial comparison (total RMSE)", "",

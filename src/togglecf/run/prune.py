@@ -49,14 +49,14 @@ from togglecf.learn.labels import LabelSettings
 from togglecf.learn.models import load_bundle
 from togglecf.parallel.backend import InlineBackend, data_location, load_trial_cached
 from togglecf.registry import TOGGLING, FilterSpec
-from togglecf.report.study_report import png_bytes
+from togglecf.report.study_report import paired_test, png_bytes
 from togglecf.run.config import load_config
 from togglecf.run.scoring import score_trials
 from togglecf.run.sweep import ResultStore
 from togglecf.run.train import run_training
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["PrunePoint", "default_points", "pruning_sweep", "existing_sweep_rows", "pareto_front", "choose_point",
+__all__ = ["PrunePoint", "default_points", "pruning_sweep", "existing_sweep_rows", "pareto_front", "choose_point", "tie_verdicts",
            "write_sweep_report", "format_front", "SIZE_KEYS", "DEFAULT_EXPORT_POINT", "DEFAULT_EXPORT_SIZES"]
 
 SIZE_KEYS = {"array": "array_riscv_bytes", "tl2cgen": "tl2cgen_riscv_bytes"}
@@ -169,7 +169,8 @@ def _point_row(p: "PrunePoint", folds: list) -> tuple:
            "mean_inclination": float(np.mean([r["inclination"] for r in per_trial])), "max_total": float(tot.max()),
            "array_host_bytes": largest("array_host_bytes"), "array_riscv_bytes": largest("array_riscv_bytes"),
            "ram_bytes": largest("ram_bytes"), "us_per_prediction": float(np.median([s["us_per_prediction"] for s in sizes])),
-           **folds[0][3], "seconds": float(sum(f[4] for f in folds))}
+           **folds[0][3], "seconds": float(sum(f[4] for f in folds)),
+           "trial_totals": {r["trial"]: float(r["total"]) for r in per_trial}}
     return row, per_trial
 
 
@@ -268,6 +269,29 @@ def pareto_front(rows, size_key: str = "array_riscv_bytes", score_key: str = "me
                                      and (o[size_key] < r[size_key] or o[score_key] < r[score_key]) for o in ok)]
 
 
+def tie_verdicts(rows) -> list:
+    """Each row with ``p_vs_reference`` and ``vs_reference`` against the unpruned reference point:
+    the paired per-trial Wilcoxon test of their held-out total errors (``report.paired_test``);
+    ``tie`` when p ≥ 0.05 (the difference is inside the trial-to-trial spread), else ``better`` /
+    ``worse``; ``reference`` for the reference itself, empty when either lacks per-trial errors
+    (rows of a journal written before they were stored)."""
+    ref = next((r for r in rows if r.get("reference")), None)
+    base = (ref or {}).get("trial_totals")
+    out = []
+    for r in rows:
+        r = dict(r)
+        tt = r.get("trial_totals")
+        if r.get("reference"):
+            r.update(p_vs_reference=None, vs_reference="reference")
+        elif base and tt and set(tt) == set(base):
+            t = paired_test([tt[k] - base[k] for k in sorted(base)])
+            r.update(p_vs_reference=t["p"], vs_reference="tie" if t["tie"] else ("better" if t["mean"] < 0 else "worse"))
+        else:
+            r.update(p_vs_reference=None, vs_reference="")
+        out.append(r)
+    return out
+
+
 def choose_point(rows, max_bytes: int, size_key: str = "array_riscv_bytes") -> dict:
     """The most accurate row (lowest held-out mean total RMSE) whose ``size_key`` is within
     ``max_bytes``; ``ValueError`` naming the smallest available size when none fits."""
@@ -286,7 +310,7 @@ def choose_point(rows, max_bytes: int, size_key: str = "array_riscv_bytes") -> d
 _COLUMNS = ("key", "reference", "clf_trees", "clf_depth", "reg_trees", "reg_depth", "max_features", "features_used",
             "mean_total", "mean_heading", "mean_inclination", "max_total", "array_riscv_bytes", "array_host_bytes",
             "tl2cgen_riscv_bytes", "tl2cgen_host_bytes", "tl2cgen_q_riscv_bytes", "tl2cgen_q_host_bytes",
-            "ram_bytes", "us_per_prediction", "pareto", "seconds")
+            "ram_bytes", "us_per_prediction", "pareto", "p_vs_reference", "vs_reference", "seconds")
 
 
 def write_sweep_report(rows, out_dir, size_key: str = "array_riscv_bytes", max_bytes: int | None = None) -> dict:
@@ -295,6 +319,7 @@ def write_sweep_report(rows, out_dir, size_key: str = "array_riscv_bytes", max_b
     import pandas as pd
 
     out = Path(out_dir)
+    rows = tie_verdicts(rows)
     front = {r["key"] for r in pareto_front(rows, size_key)}
     df = pd.DataFrame([{c: (r.get(c) if c != "pareto" else r["key"] in front) for c in _COLUMNS} for r in rows])
     df = df.sort_values([size_key, "mean_total"], na_position="last")
@@ -336,17 +361,20 @@ def _plot(df, size_key, max_bytes, path):
 
 def format_front(rows, size_key: str = "array_riscv_bytes") -> str:
     """The Pareto front as a text table (printed by the CLI)."""
+    rows = tie_verdicts(rows)
     front = sorted(pareto_front(rows, size_key), key=lambda r: r[size_key])
     ref = next((r for r in rows if r["reference"]), None)
     lines = [f"{'point':<22} {'feat':>4} {'rv32 array':>10} {'rv32 tl2cgen':>12} {'RAM':>6} {'µs/pred':>7} "
-             f"{'total°':>7} {'Δref°':>6}"]
+             f"{'total°':>7} {'Δref°':>6} {'vs ref':>9}"]
     for r in front + ([ref] if ref and ref not in front else []):
         d = "" if ref is None else f"{r['mean_total'] - ref['mean_total']:+.3f}"
+        verdict = r["vs_reference"] + ("" if r["p_vs_reference"] is None else f" p={r['p_vs_reference']:.2f}")
         lines.append(f"{r['key'] + ('*' if r['reference'] else ''):<22} {r['features_used']:>4} "
                      f"{_kib(r.get('array_riscv_bytes')):>10} {_kib(r.get('tl2cgen_riscv_bytes')):>12} "
                      f"{'-' if r.get('ram_bytes') is None else r['ram_bytes']:>6} {r['us_per_prediction']:>7.2f} "
-                     f"{r['mean_total']:>7.3f} {d:>6}")
+                     f"{r['mean_total']:>7.3f} {d:>6} {verdict:>9}")
     lines.append("* reference: the model's own (unpruned) settings; sizes of the trees the filter walks")
+    lines.append("vs ref: paired per-trial Wilcoxon test against the reference; tie = p >= 0.05 (inside the spread)")
     return "\n".join(lines)
 
 

@@ -28,7 +28,7 @@ import json
 import math
 import subprocess
 import tempfile
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +50,7 @@ from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length
 from togglecf.toggling.gains import GAINS_FILE
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["export_c_filter", "build_harness", "run_harness", "harness_features", "TEMPLATES", "HARNESS_CFLAGS",
+__all__ = ["export_c_filter", "ModelExport", "model_export", "write_forest", "build_harness", "run_harness", "harness_features", "TEMPLATES", "HARNESS_CFLAGS",
            "state_bytes_formula", "features_config", "fallback_config", "check_feature_layout", "check_export_rate",
            "FEATURE_TEMPLATES"]
 
@@ -269,18 +269,26 @@ def check_export_rate(model_dir, fs) -> tuple[dict, float]:
     return meta, fs
 
 
-def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:
-    """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
-    for sampling rate ``fs`` [Hz] into ``out_dir``; returns the report (also written as
-    ``out_dir/filter_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_filter_t), measured
-    with gcc), ``object_sizes`` and, with the RISC-V toolchain, ``linked_riscv`` (an rv32imc
-    picolibc program calling init/update: its ``flash`` = text + data bytes)."""
-    model_dir, out_dir = Path(model_dir), Path(out_dir)
-    meta, fs = check_export_rate(model_dir, fs)
-    gains_path = model_dir / GAINS_FILE
-    check_feature_layout()
+@dataclass
+class ModelExport:
+    """What both C exports of a trained filter take from its model directory: the Python filter
+    with its models (``filt``), the class names, the forest it walks and the outputs it drops,
+    window and hop [samples] at the export rate, and the hashes the generated files record."""
 
-    filt = load_toggling_filter(model_dir, fs, use_mag=use_mag)
+    filt: object
+    classes: list
+    forest: object
+    dropped: list
+    window: int
+    hop: int
+    model_hash: str
+    gains_hash: str
+    schema_hash: str
+
+
+def model_export(model_dir: Path, meta: dict, fs: float, filt) -> ModelExport:
+    """The ``ModelExport`` of ``filt`` (loaded from ``model_dir`` at rate ``fs``; ``meta`` its
+    ``metadata.json``); refuses a rate at which the gyro would never be integrated."""
     s = filt.settings
     if not 1.0 / fs <= s.max_dt:
         raise ValueError(f"1/fs = {1 / fs:g} s exceeds max_dt = {s.max_dt:g} s: the gyro would never be integrated")
@@ -292,29 +300,51 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     dropped = [out_names[i] for i in range(k, k + 6) if i not in kept]
     fset = filt.models.feature_settings
     L, hop = window_length(fs, fset.window_s), hop_length(fs, fset.hop_s)
-    if (L, hop) != (filt._features.L, filt.hop):
+    if (L, hop) != (filt.streaming_features.L, filt.hop):
         raise AssertionError("window/hop of the Python filter and the export disagree")
+    return ModelExport(filt, classes, forest, dropped, L, hop,
+                       model_hash=hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode())
+                       .hexdigest(),
+                       gains_hash=file_sha256(model_dir / GAINS_FILE),
+                       schema_hash=meta.get("feature_schema", {}).get("hash", "?"))
 
-    model_hash = hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode()).hexdigest()
-    gains_hash = file_sha256(gains_path)
-    schema_hash = meta.get("feature_schema", {}).get("hash", "?")
+
+def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport) -> tuple[list, int]:
+    """``tcf_forest.h`` / ``tcf_forest.c`` (the trees ``ex.filt`` walks, leaf sums in
+    ``TCF_ACC_T`` of ``tcf_config.h``) in ``out_dir``: returns the paths and the node count."""
+    comment = (f"model {model_dir.resolve().name}: outputs {', '.join(ex.classes)} (margins), eta_acc xyz, eta_mag xyz"
+               + (f"; trees of {', '.join(ex.dropped)} not exported (base margin only)" if ex.dropped else ""))
+    header, source = forest_to_c(ex.forest, "tcf_", len(ex.classes), comment)
+    files = [atomic_write_text(out_dir / "tcf_forest.h", header),
+             atomic_write_text(out_dir / "tcf_forest.c",
+                               '#include "tcf_config.h" /* TCF_ACC_T: type of the leaf sums */\n' + source)]
+    return files, int(header.split("#define TCF_N_NODES ")[1].split()[0])
+
+
+def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:
+    """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
+    for sampling rate ``fs`` [Hz] into ``out_dir``; returns the report (also written as
+    ``out_dir/filter_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_filter_t), measured
+    with gcc), ``object_sizes`` and, with the RISC-V toolchain, ``linked_riscv`` (an rv32imc
+    picolibc program calling init/update: its ``flash`` = text + data bytes)."""
+    model_dir, out_dir = Path(model_dir), Path(out_dir)
+    meta, fs = check_export_rate(model_dir, fs)
+    check_feature_layout()
+    filt = load_toggling_filter(model_dir, fs, use_mag=use_mag)
+    ex = model_export(model_dir, meta, fs, filt)
+    s, classes, forest, dropped, L, hop, k = ex.filt.settings, ex.classes, ex.forest, ex.dropped, ex.window, ex.hop, \
+        len(ex.classes)
+    model_hash, gains_hash, schema_hash = ex.model_hash, ex.gains_hash, ex.schema_hash
     out_dir.mkdir(parents=True, exist_ok=True)
-    files = []
-    for name in TEMPLATES:
-        files.append(atomic_write_text(out_dir / name, template(name)))
+    files = [atomic_write_text(out_dir / name, template(name)) for name in TEMPLATES]
     files.append(atomic_write_text(out_dir / "tcf_config.h", _config_header(
         model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, settings=s, params=filt.params, class_names=classes,
-        static_index=s.states.index(s.static_state), window=L, hop=hop, feat_params=filt._features.params,
+        static_index=s.states.index(s.static_state), window=L, hop=hop, feat_params=filt.streaming_features.params,
         schema_hash=schema_hash, model_hash=model_hash, gains_hash=gains_hash, dropped=dropped, models=filt.models)))
-    comment = (f"model {model_dir.resolve().name}: outputs {', '.join(classes)} (margins), eta_acc xyz, eta_mag xyz"
-               + (f"; trees of {', '.join(dropped)} not exported (base margin only)" if dropped else ""))
-    header, source = forest_to_c(forest, "tcf_", k, comment)
-    files.append(atomic_write_text(out_dir / "tcf_forest.h", header))
-    source = '#include "tcf_config.h" /* TCF_ACC_T: type of the leaf sums */\n' + source
-    files.append(atomic_write_text(out_dir / "tcf_forest.c", source))
+    forest_files, n_nodes = write_forest(out_dir, model_dir, ex)
+    files += forest_files
     files.append(atomic_write_text(out_dir / "Makefile", _MAKEFILE.format(cflags=" ".join(HARNESS_CFLAGS))))
 
-    n_nodes = int(header.split("#define TCF_N_NODES ")[1].split()[0])
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(p) for p in files],
               "fs": fs, "use_mag": bool(use_mag), "window": L, "hop": hop, "n_classes": k, "class_names": classes,
               "n_features": int(forest.n_features), "n_trees": int(len(forest.roots)), "n_nodes": n_nodes,

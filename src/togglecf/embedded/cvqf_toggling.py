@@ -27,16 +27,12 @@ runs it on arrays (``predictions=``: drive steps 1-5 with given predictions inst
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import shutil
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
-from togglecf.core.io import atomic_write_json, atomic_write_text, file_sha256
+from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.embedded.cfilter import (
     FEATURE_TEMPLATES,
     HARNESS_CFLAGS,
@@ -44,9 +40,10 @@ from togglecf.embedded.cfilter import (
     check_feature_layout,
     fallback_config,
     features_config,
+    model_export,
+    write_forest,
 )
 from togglecf.embedded.cvqf import vqf_config_header
-from togglecf.embedded.forest_export import forest_to_c
 from togglecf.embedded.toolchain import (
     ARM_FLAGS,
     ARM_GCC,
@@ -67,7 +64,6 @@ from togglecf.embedded.toolchain import (
     run_host_program,
     template,
 )
-from togglecf.features.windows import hop_length, window_length
 from togglecf.toggling.gains import GAINS_FILE
 from togglecf.toggling.load import load_toggling_filter
 
@@ -163,7 +159,7 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, filt, window: i
 
 #define TCF_MODEL_ID {_c_string(model_dir.name + ':' + model_hash[:12] + ':' + gains_hash[:12])}
 
-{features_config(fs=fs, window=window, hop=hop, feat_params=filt._features.params, models=filt.models)}
+{features_config(fs=fs, window=window, hop=hop, feat_params=filt.streaming_features.params, models=filt.models)}
 #define TCF_USE_MAG {1 if use_mag else 0}   /* the core's use_mag (tcf_vqf_config.h) */
 #define TCF_CLASS_NAMES_INIT {names}
 
@@ -257,22 +253,10 @@ def export_c_vqf_toggling(model_dir, out_dir, fs: float, use_mag: bool = True, *
     except KeyError as e:
         raise ValueError(f"{model_dir / GAINS_FILE}: no {'vqf_9d' if use_mag else 'vqf_6d'} gains "
                          f"(add it to [gains] modes and retrain): {e}") from None
-    s = filt.settings
-    if not 1.0 / fs <= s.max_dt:
-        raise ValueError(f"1/fs = {1 / fs:g} s exceeds max_dt = {s.max_dt:g} s: the gyro would never be integrated")
-    classes = list(filt.models.class_names)
-    k = len(classes)
-    out_names = classes + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
-    forest = filt.forest  # the trees the Python filter walks (outputs it never uses dropped)
-    kept = {int(g) for g in np.unique(forest.tree_group)}
-    dropped = [out_names[i] for i in range(k, k + 6) if i not in kept]
-    fset = filt.models.feature_settings
-    L, hop = window_length(fs, fset.window_s), hop_length(fs, fset.hop_s)
-    if (L, hop) != (filt._features.L, filt.hop):
-        raise AssertionError("window/hop of the Python filter and the export disagree")
-    model_hash = hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode()).hexdigest()
-    gains_hash = file_sha256(model_dir / GAINS_FILE)
-    schema_hash = meta.get("feature_schema", {}).get("hash", "?")
+    ex = model_export(model_dir, meta, fs, filt)
+    s, classes, forest, dropped, L, hop, k = ex.filt.settings, ex.classes, ex.forest, ex.dropped, ex.window, ex.hop, \
+        len(ex.classes)
+    model_hash, gains_hash, schema_hash = ex.model_hash, ex.gains_hash, ex.schema_hash
 
     out_dir.mkdir(parents=True, exist_ok=True)
     files = [atomic_write_text(out_dir / name, template(name)) for name in VQFT_TEMPLATES]
@@ -280,15 +264,11 @@ def export_c_vqf_toggling(model_dir, out_dir, fs: float, use_mag: bool = True, *
         model_dir=model_dir.resolve(), fs=fs, use_mag=use_mag, filt=filt, window=L, hop=hop, schema_hash=schema_hash,
         model_hash=model_hash, gains_hash=gains_hash, dropped=dropped)))
     files.append(atomic_write_text(out_dir / "tcf_vqf_config.h", vqf_config_header(fs, s.core_settings, use_mag)))
-    comment = (f"model {model_dir.resolve().name}: outputs {', '.join(classes)} (margins), eta_acc xyz, eta_mag xyz"
-               + (f"; trees of {', '.join(dropped)} not exported (base margin only)" if dropped else ""))
-    header, source = forest_to_c(forest, "tcf_", k, comment)
-    files.append(atomic_write_text(out_dir / "tcf_forest.h", header))
-    files.append(atomic_write_text(out_dir / "tcf_forest.c",
-                                   '#include "tcf_config.h" /* TCF_ACC_T: type of the leaf sums */\n' + source))
+    forest_files, n_nodes = write_forest(out_dir, model_dir, ex)
+    files += forest_files
     files.append(atomic_write_text(out_dir / "Makefile", _MAKEFILE.format(cflags=" ".join(HARNESS_CFLAGS),
                                                                           sources=" ".join(VQFT_SOURCES))))
-    n_nodes = int(header.split("#define TCF_N_NODES ")[1].split()[0])
+
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(p) for p in files], "fs": fs,
               "use_mag": bool(use_mag), "window": L, "hop": hop, "n_classes": k, "class_names": classes,
               "n_features": int(forest.n_features), "n_trees": int(len(forest.roots)), "n_nodes": n_nodes,

@@ -142,6 +142,12 @@ class InLoopModels:
         self._reset_model_state()
 
     @property
+    def streaming_features(self) -> StreamingFeatures:
+        """The feature window pushed every sample (its settings, window length ``L`` and
+        per-sample constants ``params``, e.g. for the C export)."""
+        return self._features
+
+    @property
     def forest(self):
         """The ``FlatForest`` this filter walks (set: also lays it out for the loop)."""
         return self._forest

@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
-import tempfile
 from dataclasses import asdict, fields
 from pathlib import Path
 
@@ -49,10 +47,9 @@ from togglecf.embedded.toolchain import (
     need_gcc,
     riscv_flags,
     run_command,
-    run_harness_command,
+    run_csv_harness,
     run_host_program,
     template,
-    write_imu_csv,
 )
 from togglecf.filters.vqf_core import VQFCoreSettings
 
@@ -234,24 +231,8 @@ def run_vqf_harness(exe, gyr, acc, mag=None, *, dt=None, six_d: bool = False, no
     ``tcf_vqf_update_dt``). Returns the quaternions ``(N, 4)`` float64, or with
     ``diagnostics`` ``(quat, dict)`` with ``DIAG_NAMES`` per sample and the filter's
     ``ns_per_sample`` (clock() around the update calls)."""
-    import pandas as pd
-
-    with tempfile.TemporaryDirectory() as tmp:
-        fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = write_imu_csv(fin, gyr, acc, mag, dt, float32=True)
-        cmd = [exe, *(["--diag", "--time"] if diagnostics else []), *(["--6d"] if six_d else []),
-               *(["--no-mag"] if no_mag else []), fin, fout]
-        res = run_harness_command(exe, cmd)
-        df = pd.read_csv(fout)
-    quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
-    if quat.shape != (n, 4):
-        raise RuntimeError(f"{exe} wrote {quat.shape[0]} rows for {n} samples")
-    if not diagnostics:
-        return quat
-    diag = {c: df[c].to_numpy(np.float64) for c in DIAG_NAMES}
-    m = re.search(r"([0-9.]+) ns/sample", res.stderr)
-    diag["ns_per_sample"] = float(m.group(1)) if m else math.nan
-    return quat, diag
+    flags = (["--6d"] if six_d else []) + (["--no-mag"] if no_mag else [])
+    return run_csv_harness(exe, gyr, acc, mag, dt=dt, float32=True, flags=flags, diagnostics=diagnostics)
 
 
 def report_json(report: dict) -> str:

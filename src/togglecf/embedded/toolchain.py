@@ -17,7 +17,7 @@ import numpy as np
 __all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
            "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
            "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv", "link_arm", "reachable_code_size",
-           "run_prediction_harness"]
+           "run_prediction_harness", "run_csv_harness"]
 
 RISCV_GCC = "riscv64-unknown-elf-gcc"
 
@@ -274,19 +274,20 @@ def run_harness_command(exe, cmd):
     return res
 
 
-def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False,
-                           predictions=None):
-    """Run a learned filter's host harness (``tcf_harness``, ``tcf_vqf_toggling_harness``: the same
-    command line) on ``(N, 3)`` arrays. ``mag=None``: a 6-column CSV (the filter gets ``mag =
-    NULL``); ``no_mag``: NULL although mag is given; ``predictions (N, S + 6)``: drive the filter
-    step with these instead of the trees (``--pred``). Returns the quaternions ``(N, 4)`` float64,
-    or with ``diagnostics`` ``(quat, dict)``: every other output column per sample and
+def run_csv_harness(exe, gyr, acc, mag=None, *, dt=None, float32: bool = False, flags=(), predictions=None,
+                    diagnostics: bool = False):
+    """Run a compiled host harness of this package (``tcf_*_harness in.csv out.csv``, the CSV of
+    ``write_imu_csv``) on ``(N, 3)`` arrays. ``mag=None``: a 6-column CSV (the filter gets ``mag =
+    NULL``); ``dt``: a time-step column; ``float32``: inputs rounded to float32 first; ``flags``:
+    the harness's own options; ``predictions (N, S + 6)``: ``--pred`` (drive the filter step with
+    these instead of the trees). Returns the quaternions ``(N, 4)`` float64, or with
+    ``diagnostics`` (``--diag --time``) ``(quat, dict)``: every other output column per sample and
     ``ns_per_sample`` (the harness's clock() timing of the update calls; NaN if not printed)."""
     import pandas as pd  # optional heavy dependency, only for reading the harness's CSV
 
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout = Path(tmp) / "in.csv", Path(tmp) / "out.csv"
-        n = write_imu_csv(fin, gyr, acc, mag)
+        n = write_imu_csv(fin, gyr, acc, mag, dt, float32=float32)
         extra = []
         if predictions is not None:
             P = np.asarray(predictions, np.float64)
@@ -296,8 +297,7 @@ def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False
             np.savetxt(fpred, P, fmt="%.17g", delimiter=",", header=",".join(f"p{j}" for j in range(P.shape[1])),
                        comments="")
             extra = ["--pred", str(fpred)]
-        cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *(["--no-mag"] if no_mag else []), *extra,
-               str(fin), str(fout)]
+        cmd = [str(exe), *(["--diag", "--time"] if diagnostics else []), *flags, *extra, str(fin), str(fout)]
         res = run_harness_command(exe, cmd)
         df = pd.read_csv(fout)
     quat = df[["w", "x", "y", "z"]].to_numpy(np.float64)
@@ -309,6 +309,14 @@ def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False
     m = re.search(r"([0-9.]+) ns/sample", res.stderr)
     diag["ns_per_sample"] = float(m.group(1)) if m else float("nan")
     return quat, diag
+
+
+def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False,
+                           predictions=None):
+    """``run_csv_harness`` for a learned filter's harness (``tcf_harness``,
+    ``tcf_vqf_toggling_harness``: the same command line); ``no_mag``: NULL although mag is given."""
+    return run_csv_harness(exe, gyr, acc, mag, flags=["--no-mag"] if no_mag else [], predictions=predictions,
+                           diagnostics=diagnostics)
 
 
 def write_imu_csv(path, gyr, acc, mag=None, dt=None, float32: bool = False) -> int:

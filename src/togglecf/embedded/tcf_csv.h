@@ -51,6 +51,20 @@ static int tcf_csv_parse_field(const char *b, const char *e, float *out) {
   return 1;
 }
 
+/* The output rows of a harness: w,x,y,z (qo: 4 per sample) and, with diag, the sample's n_diag
+   diagnostics (dg: n_diag per sample), one line per sample, %.9g (float32 round-trips). */
+static void tcf_csv_write_rows(FILE *f, const float *qo, const float *dg, long n, int n_diag, int diag) {
+  long s;
+  int k;
+  for (s = 0; s < n; ++s) {
+    const float *q = qo + 4 * s;
+    fprintf(f, "%.9g,%.9g,%.9g,%.9g", (double)q[0], (double)q[1], (double)q[2], (double)q[3]);
+    if (diag)
+      for (k = 0; k < n_diag; ++k) fprintf(f, ",%.9g", (double)dg[(long)n_diag * s + k]);
+    fputc('\n', f);
+  }
+}
+
 #ifdef TCF_CSV_READ
 #include <errno.h>
 

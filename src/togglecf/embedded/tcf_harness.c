@@ -144,13 +144,7 @@ int main(int argc, char **argv) {
     fputs(",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,alpha_acc,alpha_mag,fallback", fout);
   }
   fputc('\n', fout);
-  for (s = 0; s < n; ++s) {
-    const float *q = qo + 4 * s;
-    fprintf(fout, "%.9g,%.9g,%.9g,%.9g", (double)q[0], (double)q[1], (double)q[2], (double)q[3]);
-    if (diag)
-      for (k = 0; k < N_DIAG; ++k) fprintf(fout, ",%.9g", (double)dg[N_DIAG * s + k]);
-    fputc('\n', fout);
-  }
+  tcf_csv_write_rows(fout, qo, dg, n, N_DIAG, diag);
   free(x); free(px); free(qo); free(dg);
   if (fclose(fout) != 0) return tcf_csv_fail("tcf_harness", out_path, 0, "write failed:", strerror(errno));
   return 0;

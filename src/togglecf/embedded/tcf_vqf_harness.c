@@ -110,7 +110,7 @@ static int read_imu_csv(const char *path, float **rows, long *n_rows, int *has_m
 int main(int argc, char **argv) {
   static const tcf_vqf_params_t config = TCF_VQF_PARAMS_INIT;
   const char *in_path = NULL, *out_path = NULL;
-  int six_d = 0, no_mag = 0, diag = 0, timing = 0, has_mag, has_dt, i, k;
+  int six_d = 0, no_mag = 0, diag = 0, timing = 0, has_mag, has_dt, i;
   long n = 0, s;
   float *x = NULL, *qo = NULL, *dg = NULL;
   tcf_vqf_params_t params = config;
@@ -181,13 +181,7 @@ int main(int argc, char **argv) {
     return tcf_csv_fail("tcf_vqf_harness", out_path, 0, "cannot write:", strerror(errno));
   }
   fputs(diag ? "w,x,y,z,rest,mag_dist,bias_x,bias_y,bias_z,bias_sigma,delta,k_mag\n" : "w,x,y,z\n", fout);
-  for (s = 0; s < n; ++s) {
-    const float *q = qo + 4 * s;
-    fprintf(fout, "%.9g,%.9g,%.9g,%.9g", (double)q[0], (double)q[1], (double)q[2], (double)q[3]);
-    if (diag)
-      for (k = 0; k < N_DIAG; ++k) fprintf(fout, ",%.9g", (double)dg[N_DIAG * s + k]);
-    fputc('\n', fout);
-  }
+  tcf_csv_write_rows(fout, qo, dg, n, N_DIAG, diag);
   free(x); free(qo); free(dg);
   if (fclose(fout) != 0) return tcf_csv_fail("tcf_vqf_harness", out_path, 0, "write failed:", strerror(errno));
   return 0;

@@ -41,6 +41,13 @@ _TAU_GRID = (-1.0, 116.7, 35.0, 17.5, 6.998, 3.498, 1.748, 0.6982, 0.3482, 0.173
 GAINS_FORMAT = 2
 
 
+def _search_from_dict(cls, d: dict, what: str):
+    """A gain-search record from a config table: lists become tuples of floats (the grids), other
+    values (``sweeps``) stay; unknown keys are refused (``check_keys``)."""
+    return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
+                  for k, v in check_keys(cls, d, what).items()})
+
+
 @dataclass(frozen=True)
 class GainSearch:
     """Grids of the coordinate descent (time constants in s, ``TogglingSettings``; σ_m in µT). The
@@ -67,8 +74,7 @@ class GainSearch:
 
     @classmethod
     def from_dict(cls, d: dict) -> "GainSearch":
-        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
-                      for k, v in check_keys(cls, d, "gain-search").items()})
+        return _search_from_dict(cls, d, "gain-search")
 
     def start(self, states, static_state) -> TogglingSettings:
         """Where the descent starts: moderate gains in every state (τ_acc 3.498 s, τ_mag 11.66 s,
@@ -114,8 +120,7 @@ class VQFGainSearch:
 
     @classmethod
     def from_dict(cls, d: dict) -> "VQFGainSearch":
-        return cls(**{k: tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else v
-                      for k, v in check_keys(cls, d, "VQF gain-search").items()})
+        return _search_from_dict(cls, d, "VQF gain-search")
 
     def start(self, states, static_state=None) -> VQFTogglingSettings:
         return VQFTogglingSettings(states=tuple(states))

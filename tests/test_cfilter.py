@@ -3,22 +3,23 @@ features and held predictions equal the Python (float64) in-loop filter on a rea
 and 6D, bad samples do not poison its state, the harness reads CSV robustly, the state size is
 the documented formula, the sources compile warning-free for the host and for rv32imc.
 
-Tolerances (measured first, with models/default on all 25 BROAD trials, 9D and 6D):
+Tolerances (measured first on all 25 BROAD trials, 9D and 6D, with the models `make run` trains on
+all of them, ``build/transfer/models_broad``: an in-sample equivalence check, out-of-range fallback
+included; re-measured after the fallback was added):
 
 * Filter arithmetic alone (the C toggling step driven by Python's predictions vs
-  ``TogglingFilter`` in float64): at most 0.0013° (9D) / 0.0037° (6D, heading from the gyro
-  only) over all samples of all trials. Asserted: max <= 0.01°.
-* The whole in-loop filter (features, trees and step in float32): a feature that lands within
-  float32 rounding of a split threshold takes the other branch at ~0.5 % of the hops; the held
-  prediction then differs for one hop (e.g. a class probability by 0.02-0.04) and so do the
-  gains for those samples. Mostly invisible (max 0.0016° on trial 05, 9D), but under the 3 g
-  linear accelerations of trial 15 (fast translation) a few such hops (5 of 1811) move the
-  orientation by up to 0.073° (9D) / 0.059° (6D); all other trials stay <= 0.036°. This is the
-  model's own sensitivity, not an error of the port: the Python filter itself moves by up to
-  0.028° (trial 18, 6D) when its inputs are merely rounded to float32. Asserted here on trial
-  05 (the issue's test): max over all samples <= 0.05° (measured 0.0006° with the test model).
+  ``TogglingFilter`` in float64): at most 0.0072° (9D, trial 21) / 0.0098° (6D, trial 28, heading
+  from the gyro only) over all samples of all trials. Asserted: max <= 0.01° (on the trials below).
+* The whole in-loop filter (features, range check, trees and step in float32): a feature that
+  lands within float32 rounding of a split threshold or of its training-range bound decides the
+  other way for that hop; the held prediction then differs for one hop and so do the gains for
+  those samples. Median of the per-trial maxima 0.0044° (9D) / 0.0080° (6D); 6D worst 0.058°
+  (trial 15); 9D <= 0.057° on every trial but 32 (magnet attached at 1 cm): 0.68°, where such hops
+  move the heading while the magnetometer is disturbed. This is the model's own sensitivity, not
+  an error of the port. Asserted here on trial 05 (the issue's test), with the tiny test model:
+  max over all samples <= 0.05°.
 * Held predictions: within 1e-4 (abs) + 1e-4 (rel) at >= 97 % of the samples (the flips above
-  are the exceptions; measured 98.7-100 % on the 25 trials).
+  are the exceptions; measured >= 98.5 % on every one of the 25 trials).
 * Features: within 1e-3 (rel) + 1e-4 (abs) of ``compute_features`` (measured on trial 15: the
   jerk features differ most, by <= 8e-4 abs / 1.5e-4 rel, all others by <= 3e-5 abs; the
   EMA-based *_dev features by ~1e-6 thanks to the compensated EMA of tcf_filter.c).

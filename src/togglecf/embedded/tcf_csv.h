@@ -148,6 +148,36 @@ static int tcf_csv_read(const char *prog, const char *path, const int *allowed, 
   *n_rows = n;
   return 0;
 }
+/* The inputs of a learned filter's harness: the IMU CSV (9 columns, or 6 without mag: then
+   *no_mag = 1; rows of 9 floats in *x) and, with pred_path, the prediction CSV of n_pred columns
+   with one row per sample (*px; NULL without pred_path). Returns 0, or 1 after printing the
+   error (nothing left allocated). */
+static int tcf_csv_read_learned_inputs(const char *prog, const char *in_path, const char *pred_path, int n_pred,
+                                       float **x, long *n, int *no_mag, float **px) {
+  static const int imu_cols[2] = {6, 9};
+  int n_cols, n_pcols;
+  long n_rows;
+  *px = NULL;
+  if (tcf_csv_read(prog, in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
+                   x, n, &n_cols))
+    return 1;
+  if (n_cols == 6) *no_mag = 1;
+  if (pred_path) {
+    if (tcf_csv_read(prog, pred_path, &n_pred, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", px,
+                     &n_rows, &n_pcols)) {
+      free(*x);
+      return 1;
+    }
+    if (n_rows != *n) {
+      char msg[96];
+      sprintf(msg, "has %ld prediction rows for %ld samples", n_rows, *n);
+      free(*x); free(*px);
+      return tcf_csv_fail(prog, pred_path, 0, msg, NULL);
+    }
+  }
+  return 0;
+}
+
 #endif /* TCF_CSV_READ */
 
 #endif /* TCF_CSV_H */

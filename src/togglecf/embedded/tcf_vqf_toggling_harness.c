@@ -35,10 +35,9 @@
 static const char *class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
 
 int main(int argc, char **argv) {
-  static const int imu_cols[2] = {6, 9}, pred_cols[1] = {TCF_N_PRED};
   const char *in_path = NULL, *out_path = NULL, *pred_path = NULL;
-  int no_mag = 0, diag = 0, timing = 0, n_cols, n_pcols, i, k;
-  long n = 0, n_pred = 0, s;
+  int no_mag = 0, diag = 0, timing = 0, i, k;
+  long n = 0, s;
   float *x = NULL, *px = NULL, *qo = NULL, *dg = NULL;
   FILE *fout;
   static tcf_vqft_t f;
@@ -65,23 +64,7 @@ int main(int argc, char **argv) {
             (double)TCF_FS);
     return 2;
   }
-  if (tcf_csv_read(PROG, in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
-                   &x, &n, &n_cols))
-    return 1;
-  if (n_cols == 6) no_mag = 1;
-  if (pred_path) {
-    if (tcf_csv_read(PROG, pred_path, pred_cols, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", &px,
-                     &n_pred, &n_pcols)) {
-      free(x);
-      return 1;
-    }
-    if (n_pred != n) {
-      char msg[96];
-      sprintf(msg, "has %ld prediction rows for %ld samples", n_pred, n);
-      free(x); free(px);
-      return tcf_csv_fail(PROG, pred_path, 0, msg, NULL);
-    }
-  }
+  if (tcf_csv_read_learned_inputs(PROG, in_path, pred_path, TCF_N_PRED, &x, &n, &no_mag, &px)) return 1;
   qo = (float *)malloc(sizeof(float) * 4 * (size_t)(n ? n : 1));
   dg = (float *)malloc(sizeof(float) * N_DIAG * (size_t)(n ? n : 1));
   if (!qo || !dg) {

@@ -147,33 +147,29 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
 
 /* ------------------------------------------------------------------ filters/toggling.py */
 
-/* Probability-weighted gains (step 4, _gains); a non-finite probability row (no prediction
-   yet) gives the lowest gain of each sensor (the cautious choice). */
-static void tcf_gains(const float *pred, float *aa, float *am) {
-  float total = 0.0f;
+/* Step 4 (_gains): the probability-weighted gains, returning 1; or the core's gains, returning 0,
+   where the filter falls back (no valid prediction, or top probability below the confidence floor). */
+static int tcf_gains(const float *pred, float *aa, float *am) {
+  float total = 0.0f, top = 0.0f;
   int s;
   *aa = 0.0f;
   *am = 0.0f;
   for (s = 0; s < TCF_N_CLASSES; ++s) {
     float p = pred[s];
-    if (!(p >= 0.0f)) {
-      int t;
-      *aa = tcf_alpha_acc[0];
-      *am = tcf_alpha_mag[0];
-      for (t = 0; t < TCF_N_CLASSES; ++t) {
-        if (tcf_alpha_acc[t] < *aa) *aa = tcf_alpha_acc[t];
-        if (tcf_alpha_mag[t] < *am) *am = tcf_alpha_mag[t];
-      }
-      return;
-    }
+    if (!(p >= 0.0f && p < INFINITY)) break;
     *aa += p * tcf_alpha_acc[s];
     *am += p * tcf_alpha_mag[s];
     total += p;
+    if (p > top) top = p;
   }
-  if (total > 0.0f) {
-    *aa /= total;
-    *am /= total;
+  if (s < TCF_N_CLASSES || !(total > 0.0f) || top < TCF_CONFIDENCE_FLOOR * total) {
+    *aa = TCF_ALPHA_CORE_ACC;
+    *am = TCF_ALPHA_CORE_MAG;
+    return 0;
   }
+  *aa /= total;
+  *am /= total;
+  return 1;
 }
 
 /* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->pred. */
@@ -182,7 +178,9 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   const float *pred = f->feat.pred;
   const float *eta_a = pred + TCF_N_CLASSES, *eta_m = pred + TCF_N_CLASSES + 3;
   float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3];
-  int j, eta_ok = 1, acc_ok, mag_ok, g_ok;
+  int j, learned, eta_ok, acc_ok, mag_ok, g_ok;
+  learned = tcf_gains(pred, &alpha_a, &alpha_m);  /* step 4 first: the fallback also stops steps 1 and 3 */
+  eta_ok = learned;
   for (j = 0; j < 6; ++j)
     if (!isfinite(pred[TCF_N_CLASSES + j])) eta_ok = 0;
   for (j = 0; j < 3; ++j) {  /* step 3: noise removal */
@@ -191,12 +189,11 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   }
   acc_ok = vector_ok(a_d);
   mag_ok = TCF_USE_MAG && vector_ok(m_d);
-  tcf_gains(pred, &alpha_a, &alpha_m);  /* step 4: gain toggling */
   if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* trust the magnetometer less when a disturbance is predicted */
     float e2 = eta_m[0] * eta_m[0] + eta_m[1] * eta_m[1] + eta_m[2] * eta_m[2];
     alpha_m = alpha_m / (1.0f + e2 / (TCF_MAG_DISTURBANCE_SCALE * TCF_MAG_DISTURBANCE_SCALE));
   }
-  p_static = pred[TCF_STATIC_INDEX] >= 0.0f ? pred[TCF_STATIC_INDEX] : 0.0f;
+  p_static = learned ? pred[TCF_STATIC_INDEX] : 0.0f;
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = p_static;

@@ -12,6 +12,13 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
    the class probabilities; a hard toggle when the probabilities are one-hot); the
    magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
+   **Fallback** (issue 12): with no prediction (NaN probabilities: before the first full window,
+   or a window outside the models' training range, ``learn.ranges``) or a prediction whose
+   confidence c = max_s p_s / Σ_s p_s is below ``confidence_floor`` c₀, the learned terms are
+   off: α_a, α_m are the core's (``core_tau_acc``, ``core_tau_mag``), no noise is removed (step 3)
+   and the bias does not move (step 1). With every sample falling back, the filter *is* its core
+   with learning switched off (test). A hard switch, like the toggling itself; c₀ = 0 never
+   falls back on a valid prediction.
 5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
@@ -31,7 +38,7 @@ a pure function of the two gyro-propagated vectors; γ < 1 adds a second smoothi
 
 Bad samples follow the policy of ``filters.base`` (non-finite or saturated gyro, bad Δt: no propagation;
 bad acc: no tilt update; bad mag: no heading update). Non-finite predictions count as
-"no prediction": the probabilities of the last valid hop are kept (caller's job) and η̂ = 0.
+"no prediction": the fallback of step 4 (the core's gains, η̂ = 0).
 """
 from __future__ import annotations
 
@@ -84,6 +91,11 @@ class TogglingSettings(FilterSettings):
         bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
         mag_disturbance_scale: σ_m [µT] of step 4; 0 turns the disturbance scaling off.
         noise_weight_acc, noise_weight_mag: w_a, w_m of step 3, in [0, 1].
+        confidence_floor: c₀ in [0, 1) of step 4's fallback: a prediction whose top class
+            probability (of their sum) is below it is not used; 0 (default): every valid one is.
+        core_tau_acc, core_tau_mag: the core's time constants [s] (learning switched off), used
+            where the filter falls back (step 4). Default 12.5 s: the fixed CF's (``filters.
+            complementary``, its TAGP on BROAD), for both sensors; must be > 0 (a correction).
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models (``gains.json``, format 2). They are
     the former per-sample defaults at BROAD's 285.714 Hz, τ = −Ts/ln(1 − α) rounded to 4
@@ -101,6 +113,9 @@ class TogglingSettings(FilterSettings):
     mag_disturbance_scale: float = 0.0
     noise_weight_acc: float = 1.0
     noise_weight_mag: float = 1.0
+    confidence_floor: float = 0.0
+    core_tau_acc: float = 12.5
+    core_tau_mag: float = 12.5
 
     def __post_init__(self):
         super().__post_init__()
@@ -123,6 +138,11 @@ class TogglingSettings(FilterSettings):
             raise ValueError(f"mag_disturbance_scale must be >= 0 µT, got {self.mag_disturbance_scale}")
         if not self.bias_gate >= 0.0:
             raise ValueError(f"bias_gate must be >= 0 rad/s, got {self.bias_gate}")
+        if not 0.0 <= self.confidence_floor < 1.0:
+            raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
+        for name in ("core_tau_acc", "core_tau_mag"):
+            if not (0.0 < getattr(self, name) < math.inf):
+                raise ValueError(f"{name} must be a finite time constant > 0 s, got {getattr(self, name)}")
 
 
 class TogglingCoefficients(NamedTuple):
@@ -135,8 +155,10 @@ class TogglingCoefficients(NamedTuple):
         gamma: output blend weight per sample, from ``output_tau``.
         bias_gain: bias low-pass gain per sample at p_static = 1, from ``bias_tau``.
         static_index: index of ``static_state`` in ``states`` (its probability drives the bias).
-        bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag:
+        bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag, confidence_floor:
             the ``TogglingSettings`` of the same names.
+        alpha_core_acc, alpha_core_mag: the core's gains per sample (the fallback of step 4),
+            from ``core_tau_acc``/``core_tau_mag``.
     """
 
     use_mag: float
@@ -151,31 +173,31 @@ class TogglingCoefficients(NamedTuple):
     mag_disturbance_scale: float
     noise_weight_acc: float
     noise_weight_mag: float
+    confidence_floor: float
+    alpha_core_acc: float
+    alpha_core_mag: float
 
 
 @njit(cache=True, inline="always")
-def _gains(alpha_acc, alpha_mag, pred, ns):
-    """Probability-weighted gains (step 4); a non-finite probability row counts as the static
-    state's gains being off: the lowest gain of each sensor is used (the cautious choice)."""
+def _gains(params, pred, ns):
+    """Step 4: ``(α_a, α_m, learned)``: the probability-weighted gains and True, or the core's
+    gains and False where the filter falls back (no valid prediction, or its confidence
+    max_s p_s / Σ_s p_s below the confidence floor)."""
     aa = 0.0
     am = 0.0
     total = 0.0
+    top = 0.0
     for s in range(ns):
         p = pred[s]
-        if not (p >= 0.0):
-            aa = alpha_acc[0]
-            am = alpha_mag[0]
-            for t in range(ns):
-                aa = min(aa, alpha_acc[t])
-                am = min(am, alpha_mag[t])
-            return aa, am, 0.0
-        aa += p * alpha_acc[s]
-        am += p * alpha_mag[s]
+        if not (p >= 0.0 and p < math.inf):
+            return params.alpha_core_acc, params.alpha_core_mag, False
+        aa += p * params.alpha_acc[s]
+        am += p * params.alpha_mag[s]
         total += p
-    if total > 0.0:
-        aa /= total
-        am /= total
-    return aa, am, total
+        top = max(top, p)
+    if not (total > 0.0) or top < params.confidence_floor * total:
+        return params.alpha_core_acc, params.alpha_core_mag, False
+    return aa / total, am / total, True
 
 
 @njit(cache=True)
@@ -184,7 +206,8 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     use_mag, max_dt, ns = params.use_mag > 0.5, params.max_dt, params.n_states
     gamma, bias_gain, static_idx, bias_gate = params.gamma, params.bias_gain, params.static_index, params.bias_gate
     mag_scale, w_a, w_m = params.mag_disturbance_scale, params.noise_weight_acc, params.noise_weight_mag
-    eta_ok = True
+    alpha_a, alpha_m, learned = _gains(params, pred, ns)  # step 4 first: the fallback also stops steps 1 and 3
+    eta_ok = learned
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
             eta_ok = False
@@ -196,11 +219,10 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
         m_d = (mag[0], mag[1], mag[2])
     acc_ok = vector_ok(a_d)
     mag_ok = use_mag and vector_ok(m_d)
-    alpha_a, alpha_m, _ = _gains(params.alpha_acc, params.alpha_mag, pred, ns)
     if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted
         e2 = pred[ns + 3] * pred[ns + 3] + pred[ns + 4] * pred[ns + 4] + pred[ns + 5] * pred[ns + 5]
         alpha_m = alpha_m / (1.0 + e2 / (mag_scale * mag_scale))
-    p_static = pred[static_idx] if pred[static_idx] >= 0.0 else 0.0
+    p_static = pred[static_idx] if learned else 0.0
     diag[0] = 0.0
     diag[1] = 0.0
     diag[2] = p_static
@@ -318,7 +340,9 @@ class TogglingFilter(PredictionDrivenFilter):
                 "alpha_mag": np.array([gain(t, ts) for t in s.tau_mag]), "gamma": gain(s.output_tau, ts),
                 "bias_gain": gain(s.bias_tau, ts), "static_index": s.states.index(s.static_state),
                 "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
-                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
+                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
+                "confidence_floor": s.confidence_floor, "alpha_core_acc": gain(s.core_tau_acc, ts),
+                "alpha_core_mag": gain(s.core_tau_mag, ts)}
 
     def _default_pred(self, n):
         pred = np.zeros((n, self.n_predictions))

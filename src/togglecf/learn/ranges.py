@@ -6,7 +6,7 @@ schema's column order, plus the fallback threshold). When the filter runs, a win
 lie outside that range on *more than* a fraction ``max_out_of_range`` of the bounded features is
 not predicted at all: its prediction row is NaN ("no prediction"), which every prediction-driven
 filter treats as its documented default (the VQF core's own settings for ``vqf_toggling``; the
-toggling CF's cautious lowest gains). The models are not trusted where they never saw data.
+toggling CF's core gains, ``filters.toggling`` step 4). The models are not trusted where they never saw data.
 
 Why a count and not a per-feature test: with 0.5–99.5 % bounds each feature is outside its range
 on 1 % of the training windows, so with ~70 features an ordinary window is often outside on one

@@ -60,6 +60,7 @@ class GainSearch:
         bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
         mag_disturbance_scale: grid of σ_m (0 = off).
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise.
+        confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
         sweeps: passes over all parameters.
     """
 
@@ -70,6 +71,7 @@ class GainSearch:
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
     noise_weight_acc: tuple = (0.0, 0.5, 1.0)
     noise_weight_mag: tuple = (0.0, 0.5, 1.0)
+    confidence_floor: tuple = (0.0,)
     sweeps: int = 2
 
     @classmethod
@@ -95,7 +97,7 @@ class GainSearch:
                     vals.append((a, {name: tuple(g)}))
                 yield f"{name}[{settings.states[s]}]", vals
         for name in ("noise_weight_acc", "noise_weight_mag", "output_tau", "bias_tau", "bias_gate") + (
-                ("mag_disturbance_scale",) if use_mag else ()):
+                ("mag_disturbance_scale",) if use_mag else ()) + ("confidence_floor",):
             yield name, [(v, {name: v}) for v in getattr(self, name)]
 
 
@@ -369,5 +371,5 @@ def describe_gains(settings) -> str:
                 f"{settings.mag_disturbance_scale} µT, noise weights {settings.noise_weight_acc}/"
                 f"{settings.noise_weight_mag}")
     return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
-            f"bias τ {settings.bias_tau} s, "
-            f"σ_m {settings.mag_disturbance_scale}, noise weights {settings.noise_weight_acc}/{settings.noise_weight_mag}")
+            f"bias τ {settings.bias_tau} s, σ_m {settings.mag_disturbance_scale}, noise weights "
+            f"{settings.noise_weight_acc}/{settings.noise_weight_mag}, c₀ {settings.confidence_floor}")

@@ -61,8 +61,9 @@ def _gains(class_names, static_state, use_mag):
         extra = dict(output_tau=0.00382, bias_tau=3.498, bias_gate=0.05, mag_disturbance_scale=10.0,
                      noise_weight_acc=0.0, noise_weight_mag=0.5)
     else:
+        # and a confidence floor: low-confidence windows run the core (12.5 s, no bias, no noise removal)
         extra = dict(output_tau=0.0, bias_tau=1.165, bias_gate=0.05, mag_disturbance_scale=0.0, noise_weight_acc=0.5,
-                     noise_weight_mag=1.0)
+                     noise_weight_mag=1.0, confidence_floor=0.8)
     return TogglingSettings(states=tuple(class_names), static_state=static_state, tau_acc=base_a[:s],
                             tau_mag=base_m[:s], **extra)
 
@@ -159,6 +160,9 @@ def test_c_filter_arithmetic_matches_python_with_the_same_predictions(exported, 
         ref = TogglingFilter(cf_trial.fs, f.settings, use_mag=use_mag).update_batch(
             cf_trial.gyr, cf_trial.acc, mag, predictions=P).quat
         assert np.array_equal(ref, py.quat)  # the same thing in Python
+        if not use_mag:  # the 6D gains have a confidence floor: both branches of step 4 are exercised
+            core = py.diagnostics["alpha_acc"] == f.params.alpha_core_acc
+            assert 0.0 < core.mean() < 1.0, f"6D: {core.mean():.3f} of the samples at the core's gain"
         qc = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, mag, predictions=P)
         ang = _angles_deg(qc, ref)
         assert ang.max() <= 0.01, f"{mode}: max {ang.max():.5f}°"

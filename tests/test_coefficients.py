@@ -167,9 +167,9 @@ def test_toggling_coefficients():
 
 def test_toggling_one_hot_prediction_selects_that_states_gains():
     """With a one-hot prediction of state s the gains used are alpha_acc[s], alpha_mag[s]; a
-    non-finite probability row falls back to the core's gains (``core_tau_acc``/``core_tau_mag``)."""
+    non-finite probability row falls back to the cautious gains: per sensor the smallest."""
     f = TogglingFilter(FS, states=("a", "b", "c"), static_state="a", tau_acc=(0.0098, 0.1732, 3.498),
-                       tau_mag=(0.0157, 0.3482, 0.8731), core_tau_acc=5.0, core_tau_mag=20.0)
+                       tau_mag=(0.0157, 0.3482, 0.8731))
     n = 50
     g, acc, mag = np.zeros((n, 3)), np.tile([0.1, 0.0, 9.8], (n, 1)), np.tile([0.0, 20.0, -40.0], (n, 1))
     for s in range(3):
@@ -179,8 +179,7 @@ def test_toggling_one_hot_prediction_selects_that_states_gains():
         assert d["alpha_acc"][-1] == f.params.alpha_acc[s] and d["alpha_mag"][-1] == f.params.alpha_mag[s]
     pred = np.full((n, 9), np.nan)
     d = TogglingFilter(FS, f.settings).update_batch(g, acc, mag, predictions=pred).diagnostics
-    assert (d["alpha_acc"][-1], d["alpha_mag"][-1]) == (gain(5.0, 1.0 / FS), gain(20.0, 1.0 / FS))
-    assert (f.params.alpha_core_acc, f.params.alpha_core_mag) == (gain(5.0, 1.0 / FS), gain(20.0, 1.0 / FS))
+    assert d["alpha_acc"][-1] == min(f.params.alpha_acc) and d["alpha_mag"][-1] == min(f.params.alpha_mag)
 
 
 def test_streaming_feature_coefficients():

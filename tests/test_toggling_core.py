@@ -119,10 +119,11 @@ def test_bad_inputs_and_predictions_do_not_poison():
     out = f.update_batch(g, a, m, predictions=pred)
     assert np.all(np.isfinite(out.quat))
     np.testing.assert_allclose(np.linalg.norm(out.quat, axis=1), 1.0, atol=1e-12)
-    # no prediction: the core's gain (12.5 s, the fixed CF's), not a learned one
-    assert np.all(out.diagnostics["alpha_acc"][130:140] == f.params.alpha_core_acc)
-    assert f.params.alpha_core_acc == pytest.approx(1.0 - np.exp(-1.0 / (FS * 12.5)), rel=1e-12)
-    assert np.all(out.diagnostics["p_static"][130:140] == 0.0)  # and no bias update
+    # no prediction: the cautious gain (the slowest state's), and no bias update
+    assert f.params.alpha_fallback_acc == min(f.params.alpha_acc)
+    assert np.all(out.diagnostics["alpha_acc"][130:140] == f.params.alpha_fallback_acc)
+    assert min(f.params.alpha_acc) == pytest.approx(0.0005, rel=1e-3)
+    assert np.all(out.diagnostics["p_static"][130:140] == 0.0)
 
 
 def _fallback_case(n=4000, seed=3):
@@ -141,18 +142,19 @@ def _fallback_case(n=4000, seed=3):
 def test_fallback_below_the_confidence_floor_is_the_core():
     """c₀ = 0.75: the first half (top probability 1) runs the learned gains, the second (0.7 < 0.75)
     falls back. A filter whose every prediction is below the floor gives exactly the output of the
-    same filter with learning switched off (both states at the core's τ, no bias, no noise removal)."""
+    same filter with both states at the slowest time constants and the learned terms off (no bias,
+    no noise removal)."""
     g, a, m, pred, gains = _fallback_case()
     n = len(g)
     f = TogglingFilter(FS, confidence_floor=0.75, **gains)
     d = f.update_batch(g, a, m, predictions=pred).diagnostics
     assert np.all(d["alpha_acc"][1:n // 2] == f.params.alpha_acc[0])  # sample 0 initialises
-    assert np.all(d["alpha_acc"][n // 2:] == f.params.alpha_core_acc)
+    assert np.all(d["alpha_acc"][n // 2:] == f.params.alpha_acc[1])  # the slower state's gain: the cautious one
     assert np.all(d["p_static"][n // 2:] == 0.0)
     low = pred.copy()
     low[:, :2] = (0.6, 0.4)
     unsure = TogglingFilter(FS, confidence_floor=0.75, **gains).update_batch(g, a, m, predictions=low)
-    off = TogglingFilter(FS, tau_acc=(12.5, 12.5), tau_mag=(12.5, 12.5), bias_tau=-1.0, noise_weight_acc=0.0,
+    off = TogglingFilter(FS, tau_acc=(6.998, 6.998), tau_mag=(35.0, 35.0), bias_tau=-1.0, noise_weight_acc=0.0,
                          noise_weight_mag=0.0).update_batch(g, a, m, predictions=low)
     assert np.array_equal(unsure.quat, off.quat)
     # a floor of 0 trusts every valid prediction: the learned gains apply, the output differs from the core's
@@ -178,8 +180,6 @@ def test_settings_validation():
         TogglingFilter(FS, output_tau=-1.0)
     with pytest.raises(ValueError, match="confidence_floor must be in"):
         TogglingFilter(FS, confidence_floor=1.0)
-    with pytest.raises(ValueError, match="core_tau_acc must be a finite time constant > 0"):
-        TogglingFilter(FS, core_tau_acc=0.0)
     with pytest.raises(ValueError, match="static_state"):
         TogglingFilter(FS, static_state="rest")
     with pytest.raises(ValueError, match=r"predictions: expected shape \(10, 8\)"):

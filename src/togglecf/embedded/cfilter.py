@@ -186,11 +186,11 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, settings, param
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(settings.mag_disturbance_scale)}   /* uT, 0 = off */
 #define TCF_NOISE_WEIGHT_ACC {c_float(settings.noise_weight_acc)}
 #define TCF_NOISE_WEIGHT_MAG {c_float(settings.noise_weight_mag)}
-/* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the core's
- * gains, core_tau_acc {settings.core_tau_acc:g} s, core_tau_mag {settings.core_tau_mag:g} s */
+/* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the cautious
+ * gains, per sensor the smallest of the per-class ones above */
 #define TCF_CONFIDENCE_FLOOR {c_float(settings.confidence_floor)}
-#define TCF_ALPHA_CORE_ACC {c_float(params.alpha_core_acc)}
-#define TCF_ALPHA_CORE_MAG {c_float(params.alpha_core_mag)}
+#define TCF_ALPHA_FALLBACK_ACC {c_float(params.alpha_fallback_acc)}
+#define TCF_ALPHA_FALLBACK_MAG {c_float(params.alpha_fallback_mag)}
 #define TCF_CLASS_NAMES_INIT {names}
 
 #endif /* TCF_CONFIG_H */
@@ -356,8 +356,8 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
               "dropped_outputs": dropped, "settings": asdict(s),
               "per_sample_gains": {"alpha_acc": filt.params.alpha_acc.tolist(), "alpha_mag": filt.params.alpha_mag.tolist(),
                                    "gamma": float(filt.params.gamma), "bias_gain": float(filt.params.bias_gain),
-                                   "alpha_core_acc": float(filt.params.alpha_core_acc),
-                                   "alpha_core_mag": float(filt.params.alpha_core_mag)},
+                                   "alpha_fallback_acc": float(filt.params.alpha_fallback_acc),
+                                   "alpha_fallback_mag": float(filt.params.alpha_fallback_mag)},
               "schema_hash": schema_hash,
               "model_hash": model_hash, "gains_sha256": gains_hash,
               "fallback": fallback_config(filt.models)[1],

@@ -147,7 +147,7 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
 
 /* ------------------------------------------------------------------ filters/toggling.py */
 
-/* Step 4 (_gains): the probability-weighted gains, returning 1; or the core's gains, returning 0,
+/* Step 4 (_gains): the probability-weighted gains, returning 1; or the cautious gains, returning 0,
    where the filter falls back (no valid prediction, or top probability below the confidence floor). */
 static int tcf_gains(const float *pred, float *aa, float *am) {
   float total = 0.0f, top = 0.0f;
@@ -163,8 +163,8 @@ static int tcf_gains(const float *pred, float *aa, float *am) {
     if (p > top) top = p;
   }
   if (s < TCF_N_CLASSES || !(total > 0.0f) || top < TCF_CONFIDENCE_FLOOR * total) {
-    *aa = TCF_ALPHA_CORE_ACC;
-    *am = TCF_ALPHA_CORE_MAG;
+    *aa = TCF_ALPHA_FALLBACK_ACC;
+    *am = TCF_ALPHA_FALLBACK_MAG;
     return 0;
   }
   *aa /= total;

@@ -130,7 +130,8 @@ def without_initial_rest_bias(trial, min_rest_s: float = 1.0):
 def oracle_predictions(trial, label_settings, class_names) -> np.ndarray:
     """Per-sample predictions ``(N, S + 6)`` from the *true* motion state (the labels made from
     the optical reference): one-hot probabilities where the label is valid, NaN elsewhere (the
-    filter then falls back to its core); zero predicted noise."""
+    filter then uses its fallback: the learned VQF filter its core, the toggling CF its cautious gains);
+    zero predicted noise."""
     targets = make_targets(trial, label_settings)
     if tuple(targets.state_names) != tuple(class_names):
         raise ValueError(f"label states {targets.state_names} differ from the model's classes {class_names}")

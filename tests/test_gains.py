@@ -1,5 +1,7 @@
 """Gain learning finds what the physics says: trust the accelerometer at rest, not during
 linear-acceleration bursts, and learn the gyro bias at rest."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -64,3 +66,28 @@ def test_fused_objective_equals_broad_metric(rng):
     mov = rng.random(3000) > 0.3
     expected = trial_errors(q_est, q_ref, mov)["total"]
     assert _total_rmse_deg(q_est, q_ref, mov) == pytest.approx(expected, rel=1e-12)
+
+
+def _disturbed(seed, eta_m):
+    """``make_trial`` with a 20 µT offset in the sensor frame on the magnetometer for 10 s of the
+    motion, and the regressors' output ``eta_m(true offset per sample)`` in the predictions."""
+    t, pred = make_trial(seed)
+    offset = np.zeros_like(t.mag)
+    offset[2000:3000] = (20.0, -10.0, 5.0)
+    t = dataclasses.replace(t, mag=t.mag + offset)
+    pred[:, 5:8] = eta_m(offset)
+    return t, pred
+
+
+@pytest.mark.parametrize("regressor", ["right", "wrong"])
+def test_noise_removal_is_learned_only_where_it_helps(regressor):
+    """The descent starts with the noise regressors off (issue 12: a regressor that does not
+    generalise must earn its weight on the training trials). A regressor that predicts the true
+    disturbance gets weight 1; one that predicts a disturbance where there is none stays at 0."""
+    eta = (lambda off: off) if regressor == "right" else (lambda off: np.roll(off, 1500, axis=0))  # 15 s late
+    trials, preds = zip(*(_disturbed(s, eta) for s in (6, 7)))
+    search = GainSearch(tau=(9.995,), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,),
+                        noise_weight_acc=(0.0,), noise_weight_mag=(0.0, 1.0), sweeps=1)
+    assert search.start(("rest", "dynamic"), "rest").noise_weight_mag == 0.0
+    settings, _ = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
+    assert settings.noise_weight_mag == (1.0 if regressor == "right" else 0.0)

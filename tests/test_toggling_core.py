@@ -151,6 +151,12 @@ def test_fallback_below_the_confidence_floor_is_the_core():
     assert np.all(d["alpha_acc"][1:n // 2] == f.params.alpha_acc[0])  # sample 0 initialises
     assert np.all(d["alpha_acc"][n // 2:] == f.params.alpha_acc[1])  # the slower state's gain: the cautious one
     assert np.all(d["p_static"][n // 2:] == 0.0)
+    # the low-confidence diagnostic marks exactly the samples below the floor (NaN rows: no prediction, not low)
+    assert np.array_equal(d["low_confidence"][1:], (np.arange(1, n) >= n // 2).astype(float))
+    nan_pred = pred.copy()
+    nan_pred[:100] = np.nan
+    d_nan = TogglingFilter(FS, confidence_floor=0.75, **gains).update_batch(g, a, m, predictions=nan_pred).diagnostics
+    assert d_nan["low_confidence"][:100].max() == 0.0 and d_nan["alpha_acc"][1:100].max() == f.params.alpha_acc[1]
     low = pred.copy()
     low[:, :2] = (0.6, 0.4)
     unsure = TogglingFilter(FS, confidence_floor=0.75, **gains).update_batch(g, a, m, predictions=low)

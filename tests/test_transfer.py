@@ -59,6 +59,8 @@ def test_models_on_another_directory_and_the_table(model_dir, mini_index, tmp_pa
     mean = np.mean([r.errors["total"] for r in per["vqf_core"].values()])
     assert f"| vqf_core | {mean:.2f} |" in text  # the table's number is the mean of the trials' errors
     assert rows[0].rstrip(" |").endswith("%") and not rows[-1].rstrip(" |").endswith("%")
+    # the toggling CF also reports its low-confidence share (a diagnostic of its confidence floor)
+    assert [r.count("%") for r in rows[:2]] == [2, 1] and TRAINED[:2] == ("toggling", "vqf_toggling")
     json.dumps(results_json(per))
 
 

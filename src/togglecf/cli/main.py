@@ -149,6 +149,10 @@ def _print_tables(title, per_trial, per_group, datasets=()):
     if "fallback" in per_trial:  # a learned filter: how often its models were not trusted (learn.ranges)
         print(f"fallback (window out of the models' training range): {100 * per_trial['fallback'].mean():.1f} % of "
               f"the scored samples (mean over trials; max {100 * per_trial['fallback'].max():.1f} %)")
+    if "low_confidence" in per_trial:  # the toggling CF below its confidence floor: also its fallback gains
+        print(f"low confidence (top class probability below the confidence floor): "
+              f"{100 * per_trial['low_confidence'].mean():.1f} % of the scored samples (mean over trials; max "
+              f"{100 * per_trial['low_confidence'].max():.1f} %)")
     for ds in datasets:  # several data directories: one line per dataset (its group in the table above)
         if ds in per_group.index:
             r = per_group.loc[ds]

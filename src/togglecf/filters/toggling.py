@@ -77,6 +77,8 @@ __all__ = [
 ]
 
 N_PRED_NOISE = 6  # η̂_a (3) then η̂_m (3)
+#: step 4's outcome (``_gains``): the models' gains, or the fallback for want of a valid prediction or of confidence
+LEARNED, NO_PREDICTION, LOW_CONFIDENCE = 0, 1, 2
 _STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
 
 
@@ -176,9 +178,9 @@ class TogglingCoefficients(NamedTuple):
 
 @njit(cache=True, inline="always")
 def _gains(params, pred, ns):
-    """Step 4: ``(α_a, α_m, learned)``: the probability-weighted gains and True, or the cautious
-    gains and False where the filter falls back (no valid prediction, or its confidence
-    max_s p_s / Σ_s p_s below the confidence floor)."""
+    """Step 4: ``(α_a, α_m, status)``: the probability-weighted gains and ``LEARNED``, or the
+    cautious gains and ``NO_PREDICTION`` (no valid prediction) or ``LOW_CONFIDENCE`` (a valid one
+    whose confidence max_s p_s / Σ_s p_s is below the confidence floor)."""
     aa = 0.0
     am = 0.0
     total = 0.0
@@ -186,23 +188,27 @@ def _gains(params, pred, ns):
     for s in range(ns):
         p = pred[s]
         if not (p >= 0.0 and p < math.inf):
-            return params.alpha_fallback_acc, params.alpha_fallback_mag, False
+            return params.alpha_fallback_acc, params.alpha_fallback_mag, NO_PREDICTION
         aa += p * params.alpha_acc[s]
         am += p * params.alpha_mag[s]
         total += p
         top = max(top, p)
-    if not (total > 0.0) or top < params.confidence_floor * total:
-        return params.alpha_fallback_acc, params.alpha_fallback_mag, False
-    return aa / total, am / total, True
+    if not (total > 0.0):
+        return params.alpha_fallback_acc, params.alpha_fallback_mag, NO_PREDICTION
+    if top < params.confidence_floor * total:
+        return params.alpha_fallback_acc, params.alpha_fallback_mag, LOW_CONFIDENCE
+    return aa / total, am / total, LEARNED
 
 
 @njit(cache=True)
 def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
-    """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm]."""
+    """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm,
+    low_confidence] (1 where a valid prediction was below the confidence floor: step 4's fallback)."""
     use_mag, max_dt, ns = params.use_mag > 0.5, params.max_dt, params.n_states
     gamma, bias_gain, static_idx, bias_gate = params.gamma, params.bias_gain, params.static_index, params.bias_gate
     mag_scale, w_a, w_m = params.mag_disturbance_scale, params.noise_weight_acc, params.noise_weight_mag
-    alpha_a, alpha_m, learned = _gains(params, pred, ns)  # step 4 first: the fallback also stops steps 1 and 3
+    alpha_a, alpha_m, status = _gains(params, pred, ns)  # step 4 first: the fallback also stops steps 1 and 3
+    learned = status == LEARNED
     eta_ok = learned
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
@@ -222,6 +228,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     diag[0] = 0.0
     diag[1] = 0.0
     diag[2] = p_static
+    diag[4] = 1.0 if status == LOW_CONFIDENCE else 0.0
     if state[4] < 0.5:  # initialise orientation and vectors from the first valid sample
         ok, q0 = acc_mag_quaternion((1.0, 0.0, 0.0, 0.0), a_d, m_d, mag_ok) if acc_ok else (False, (1.0, 0.0, 0.0, 0.0))
         if ok:
@@ -326,7 +333,7 @@ class TogglingFilter(PredictionDrivenFilter):
     Settings = TogglingSettings
     Coefficients = TogglingCoefficients
     state_names = _STATE
-    diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm")
+    diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm", "low_confidence")
     step = toggle_step
 
     def _coefficients(self) -> dict:

@@ -69,13 +69,17 @@ def score_trial(trial: Trial, spec: FilterSpec) -> tuple[TrialResult, FilterOutp
 
 
 def run_diagnostics(out: FilterOutput, trial: Trial) -> dict:
-    """Summaries of a run over the samples BROAD scores (``movement``): the fallback fraction of a
-    filter with its models in the loop (``fallback`` diagnostic); empty for other filters."""
-    if "fallback" not in out.diagnostics:
-        return {}
+    """Summaries of a run over the samples BROAD scores (``movement``): the share of samples whose
+    window was out of the models' training range (``fallback``) for a filter with its models in the
+    loop, and the share that fell back for low confidence (``low_confidence``, the toggling CF's
+    confidence floor); empty for other filters."""
     scored = np.asarray(trial.movement, bool)
-    fb = np.asarray(out.diagnostics["fallback"])[scored]
-    return {"fallback": float(fb.mean()) if fb.size else float("nan")}
+    out_d = {}
+    for key in ("fallback", "low_confidence"):
+        if key in out.diagnostics:
+            v = np.asarray(out.diagnostics[key])[scored]
+            out_d[key] = float(v.mean()) if v.size else float("nan")
+    return out_d if "fallback" in out_d else {}
 
 
 def score_trials(trials, spec: FilterSpec) -> list[tuple[TrialResult, FilterOutput]]:

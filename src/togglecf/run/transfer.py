@@ -110,7 +110,8 @@ def study_transfer(study_dir, index: DatasetIndex) -> dict:
 def transfer_table(per: dict, index: DatasetIndex, what: str, command: str,
                    groups=("undisturbed", "mag_disturbed", "disturbed")) -> str:
     """Markdown: mean total RMSE [°] of each filter over all its trials and per group of ``index``
-    (those present), and the trained filters' mean fallback fraction (% of the scored samples)."""
+    (those present), and the trained filters' mean fallback fractions (% of the scored samples): out
+    of the training range, and (the toggling CF) below the confidence floor."""
     names = sorted(next(iter(per.values())))
     groups = [g for g in groups if g in index.groups]
     cols = ["all"] + groups
@@ -120,14 +121,15 @@ def transfer_table(per: dict, index: DatasetIndex, what: str, command: str,
              "Do not edit: rerun the command.*", "",
              "Mean total RMSE [°]; trained filters with their learned gains, the others at their defaults "
              "(Madgwick at its BROAD TAGP). Fallback: share of the scored samples whose window was out of the "
-             "models' training range (``learn.ranges``).", "",
-             f"| filter | {head} | fallback |", "|---" * (len(cols) + 2) + "|"]
+             "models' training range (``learn.ranges``); low confidence: share where the toggling CF's classifier "
+             "was below its confidence floor (both run the filter's fallback).", "",
+             f"| filter | {head} | fallback | low confidence |", "|---" * (len(cols) + 3) + "|"]
     for f, res in per.items():
         tot = {n: r.errors["total"] for n, r in res.items()}
         row = [np.mean(list(tot.values()))] + [np.mean([tot[n] for n in index.groups[g] if n in tot]) for g in groups]
-        fb = [r.diagnostics["fallback"] for r in res.values() if "fallback" in r.diagnostics]
+        shares = [[r.diagnostics[k] for r in res.values() if k in r.diagnostics] for k in ("fallback", "low_confidence")]
         lines.append(f"| {f} | " + " | ".join(f"{v:.2f}" for v in row) + " | "
-                     + (f"{100 * np.mean(fb):.1f} %" if fb else "") + " |")
+                     + " | ".join(f"{100 * np.mean(v):.1f} %" if v else "" for v in shares) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -112,6 +112,21 @@ def train_tiny_models(data_dir, trials, out):
     return out
 
 
+def with_fixed_gains(model_dir, settings_for, trials=("fixed-in-test",)):
+    """Store fixed (not learned) gains in ``model_dir`` for 9D and 6D and return it:
+    ``settings_for(class_names, static_state, use_mag)`` gives the settings, or a tuple of settings
+    (one per learned filter kind)."""
+    from togglecf.toggling.gains import save_gains
+    from togglecf.toggling.load import load_compiled_models
+
+    m = load_compiled_models(model_dir)
+    for use_mag in (True, False):
+        given = settings_for(m.class_names, m.static_state, use_mag)
+        for one in given if isinstance(given, tuple) else (given,):
+            save_gains(model_dir, one, list(trials), [], use_mag=use_mag, predictions="none (fixed in the test)")
+    return model_dir
+
+
 @pytest.fixture(scope="session")
 def tiny_model_dir(mini_index, tmp_path_factory):
     """A model directory trained in seconds on the 3 mini trials (02, 07, 24; no CV, no gains): for tests of what is done *with* trained models (compiled inference, export)."""

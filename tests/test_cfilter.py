@@ -85,17 +85,11 @@ def base_model_dir(mini_index, tmp_path_factory):
 @pytest.fixture(scope="module")
 def model_dir(base_model_dir, tmp_path_factory):
     """A copy of the tiny model directory with fixed (not learned) 9D and 6D gains."""
-    from togglecf.learn.compiled import CompiledModels
-    from togglecf.toggling.gains import save_gains
-    from togglecf.learn.models import load_bundle
+    from conftest import with_fixed_gains
 
     d = tmp_path_factory.mktemp("cf_models") / "tiny"
     shutil.copytree(base_model_dir, d)
-    models = CompiledModels.from_bundle(load_bundle(d))
-    for use_mag in (True, False):
-        save_gains(d, _gains(models.class_names, models.static_state, use_mag), ["fixed-in-test"], [],
-                   use_mag=use_mag, predictions="none (fixed in the test)")
-    return d
+    return with_fixed_gains(d, _gains)
 
 
 @pytest.fixture(scope="module")

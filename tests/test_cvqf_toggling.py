@@ -85,17 +85,11 @@ def _vqf_settings(class_names, use_mag):
 @pytest.fixture(scope="module")
 def model_dir(tiny_model_dir, tmp_path_factory):
     """A copy of the tiny model directory with fixed vqf_9d and vqf_6d gains."""
-    from togglecf.learn.compiled import CompiledModels
-    from togglecf.learn.models import load_bundle
-    from togglecf.toggling.gains import save_gains
+    from conftest import with_fixed_gains
 
     d = tmp_path_factory.mktemp("cvqft_models") / "tiny"
     shutil.copytree(tiny_model_dir, d)
-    classes = CompiledModels.from_bundle(load_bundle(d)).class_names
-    for use_mag in (True, False):
-        save_gains(d, _vqf_settings(classes, use_mag), ["fixed-in-test"], [], use_mag=use_mag,
-                   predictions="none (fixed in the test)")
-    return d
+    return with_fixed_gains(d, lambda classes, _static, use_mag: _vqf_settings(classes, use_mag))
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import mini_name
+from conftest import mini_name, with_fixed_gains
 
 REPO = Path(__file__).resolve().parents[1]
 DOC_FILES = sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
@@ -95,19 +95,13 @@ def docs_workdir(tmp_path_factory, tiny_model_dir):
     """A working directory whose ``models/default`` holds the tiny models (trained on the mini
     cuts) with fixed 9D and 6D gains, as ``togglecf train`` would leave them."""
     from togglecf.filters.toggling import TogglingSettings
-    from togglecf.learn.compiled import CompiledModels
-    from togglecf.learn.models import load_bundle
-    from togglecf.toggling.gains import save_gains
 
     work = tmp_path_factory.mktemp("docs_work")
     models = work / "models" / "default"
     shutil.copytree(tiny_model_dir, models)
-    compiled = CompiledModels.from_bundle(load_bundle(models))
-    s = len(compiled.class_names)
-    for use_mag in (True, False):
-        settings = TogglingSettings(states=tuple(compiled.class_names), static_state=compiled.static_state,
-                                    tau_acc=(3.498,) * s, tau_mag=(6.998,) * s if use_mag else (-1.0,) * s)
-        save_gains(models, settings, ["fixed-in-test"], [], use_mag=use_mag, predictions="none (fixed in the test)")
+    with_fixed_gains(models, lambda classes, static, use_mag: TogglingSettings(
+        states=tuple(classes), static_state=static, tau_acc=(3.498,) * len(classes),
+        tau_mag=((6.998,) if use_mag else (-1.0,)) * len(classes)))
     return work
 
 

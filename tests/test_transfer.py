@@ -7,32 +7,26 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import train_tiny_models
+from conftest import train_tiny_models, with_fixed_gains
 from togglecf.data import DatasetIndex
 from togglecf.registry import TRAINED
 from togglecf.run.transfer import (CLASSIC, decimate_trial, models_transfer, results_json, study_transfer,
                                    transfer_table, write_decimated)
-from togglecf.toggling.gains import GainSearch, VQFGainSearch, save_gains
-from togglecf.toggling.load import load_compiled_models
+from togglecf.toggling.gains import GainSearch, VQFGainSearch
 
 
-def _with_fixed_gains(d, trials):
+def _both_kinds(class_names, static_state, use_mag):
     """Fixed (not learned) gains of both learned filters, distinct per state so the models matter."""
-    m = load_compiled_models(d)
-    n = len(m.class_names)
-    toggling = replace(GainSearch().start(m.class_names, m.static_state), tau_acc=(0.5, 5.0, 20.0, 60.0, 2.0)[:n])
-    vqf = replace(VQFGainSearch().start(m.class_names), tau_acc_states=(1.0, 3.0, 8.0, 20.0, 2.0)[:n])
-    for use_mag in (True, False):
-        save_gains(d, toggling, trials, [], use_mag=use_mag, predictions="none (test)")
-        save_gains(d, vqf, trials, [], use_mag=use_mag, predictions="none (test)")
-    return d
+    n = len(class_names)
+    return (replace(GainSearch().start(class_names, static_state), tau_acc=(0.5, 5.0, 20.0, 60.0, 2.0)[:n]),
+            replace(VQFGainSearch().start(class_names), tau_acc_states=(1.0, 3.0, 8.0, 20.0, 2.0)[:n]))
 
 
 @pytest.fixture(scope="module")
 def model_dir(mini_index, tmp_path_factory):
     """Tiny models on two mini trials with fixed gains."""
-    return _with_fixed_gains(train_tiny_models(mini_index.root, "02,07", tmp_path_factory.mktemp("transfer") / "m"),
-                             ["02", "07"])
+    return with_fixed_gains(train_tiny_models(mini_index.root, "02,07", tmp_path_factory.mktemp("transfer") / "m"),
+                            _both_kinds, ["02", "07"])
 
 
 def test_decimate_trial_averages_blocks(mini_trial):
@@ -68,7 +62,7 @@ def test_study_transfer_uses_each_folds_own_models(model_dir, mini_index, tmp_pa
     """Two 'folds' with different models: each test trial is scored with its fold's models (the
     result equals scoring it with that model directory directly)."""
     study = tmp_path / "study"
-    other = _with_fixed_gains(train_tiny_models(mini_index.root, "07,24", tmp_path / "other"), ["07", "24"])
+    other = with_fixed_gains(train_tiny_models(mini_index.root, "07,24", tmp_path / "other"), _both_kinds, ["07", "24"])
     names = sorted(mini_index.available)
     for k, d in enumerate((model_dir, other)):
         (study / "folds" / f"fold{k}").mkdir(parents=True)

@@ -69,17 +69,17 @@ def score_trial(trial: Trial, spec: FilterSpec) -> tuple[TrialResult, FilterOutp
 
 
 def run_diagnostics(out: FilterOutput, trial: Trial) -> dict:
-    """Summaries of a run over the samples BROAD scores (``movement``): the share of samples whose
-    window was out of the models' training range (``fallback``) for a filter with its models in the
-    loop, and the share that fell back for low confidence (``low_confidence``, the toggling CF's
-    confidence floor); empty for other filters."""
+    """Summaries of a run over the samples BROAD scores (``movement``), for the diagnostics a filter
+    has: the share of samples whose window was out of the models' training range (``fallback``: a
+    filter with its models in the loop) and the share that fell back for low confidence
+    (``low_confidence``: the toggling CF's confidence floor); empty for other filters."""
     scored = np.asarray(trial.movement, bool)
-    out_d = {}
+    shares = {}
     for key in ("fallback", "low_confidence"):
         if key in out.diagnostics:
             v = np.asarray(out.diagnostics[key])[scored]
-            out_d[key] = float(v.mean()) if v.size else float("nan")
-    return out_d if "fallback" in out_d else {}
+            shares[key] = float(v.mean()) if v.size else float("nan")
+    return shares
 
 
 def score_trials(trials, spec: FilterSpec) -> list[tuple[TrialResult, FilterOutput]]:

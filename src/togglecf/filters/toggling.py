@@ -19,10 +19,10 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    the gyro where the motion is unknown), no noise is removed (step 3) and the bias does not
    move (step 1). With every sample falling back, the filter is the same filter with every
    state at those slowest time constants and the learned terms off (test). A hard switch, like
-   the toggling itself; c₀ = 0 never falls back on a valid prediction. Why not the fixed CF's
-   12.5 s: tried first, it raised the training objective of the study's first fold from 2.84°
-   to 3.28° (the out-of-fold predictions the gains are learned on fall back on disturbed windows,
-   where a fast correction follows the disturbance).
+   the toggling itself; c₀ = 0 never falls back on a valid prediction. Cautious rather than the
+   fixed CF's τ: the out-of-fold predictions the gains are learned on fall back mostly on
+   disturbed windows, where a fast correction follows the disturbance (docs/concepts/
+   toggling-filter.md gives the measurement).
 5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)

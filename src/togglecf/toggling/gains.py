@@ -84,8 +84,8 @@ class GainSearch:
         regressors off (w_a = w_m = 0, σ_m = 0, no confidence floor), as the VQF search starts at
         learning off: a learned term is used only where it lowered the objective on the training
         trials. (Until issue 12 the descent started with w_a = w_m = 1 and kept w_m = 1 because
-        neither 0 nor 0.5 did better at that point; on the phone data that removal cost 1.3°. This
-        start was changed after seeing that.)"""
+        neither 0 nor 0.5 did better at that point; the start was changed after a diagnosis on the
+        phone data showed that removal not travelling, see the issue's closing note.)"""
         n = len(states)
         return TogglingSettings(states=tuple(states), static_state=static_state, tau_acc=(3.498,) * n,
                                 tau_mag=(11.66,) * n, output_tau=0.0, bias_tau=3.498, noise_weight_acc=0.0,

@@ -34,12 +34,11 @@ def _slow_features(gyr, acc, mag, fs, s: FeatureSettings, ends):
         if k == 0:
             r, d, p = mn, dip, a.copy()
         for i, ax in enumerate("xyz"):
-            ch[f"gyr_{ax}"][k], ch[f"acc_{ax}"][k], ch[f"mag_{ax}"][k] = w[i], a[i], m[i]
+            ch[f"gyr_{ax}"][k], ch[f"acc_{ax}"][k] = w[i], a[i]
             ch[f"acc_hp_{ax}"][k] = a[i] - p[i]
         ch["gyr_norm"][k] = math.sqrt(w @ w)
         ch["gyr_energy"][k] = w @ w
         ch["acc_norm_dev"][k] = an - GRAVITY
-        ch["mag_norm"][k] = mn
         ch["jerk"][k] = 0.0 if k == 0 else math.sqrt(np.sum((a - acc[k - 1]) ** 2)) * fs
         ch["mag_norm_dev"][k] = mn - r
         ch["dip_dev"][k] = dip - d

@@ -61,18 +61,18 @@ FILTER_SOURCES = ("tcf_filter.c", "tcf_features.c", "tcf_forest.c")
 HARNESS_CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic")
 #: the channel layout tcf_filter.c was written for (it hard-codes the ring columns)
 _WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
-                    "mag_x", "mag_y", "mag_z", "mag_norm", "jerk", "mag_norm_dev", "dip_dev")
-_LAST_CHANNELS = ("gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev", "mag_x", "mag_y", "mag_z",
-                  "mag_norm_dev", "dip_dev", "acc_hp_x", "acc_hp_y", "acc_hp_z")
+                    "jerk", "mag_norm_dev", "dip_dev")
+_LAST_CHANNELS = ("gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev", "mag_norm_dev", "dip_dev",
+                  "acc_hp_x", "acc_hp_y", "acc_hp_z")
 _FS_RTOL = 1e-3
 
 
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (52 + 16 L + S)`` (52 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, EMA references
-    as hi + lo 10, previous acc 3, last-sample features 13, counters 3, η̂ 6, diagnostics 3;
-    16 L the ring; S the class probabilities)."""
-    return 4 * (52 + 16 * int(window) + int(n_classes))
+    ``4 · (49 + 12 L + S)`` (49 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, EMA references
+    as hi + lo 10, previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3;
+    12 L the ring; S the class probabilities)."""
+    return 4 * (49 + 12 * int(window) + int(n_classes))
 
 
 
@@ -361,7 +361,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
               "schema_hash": schema_hash,
               "model_hash": model_hash, "gains_sha256": gains_hash,
               "fallback": fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (52 + 16 * window + n_classes)",
+              "state_bytes_formula": "4 * (49 + 12 * window + n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = _measure_state_bytes(out_dir)
     if documented != report["state_bytes_documented"]:
@@ -411,7 +411,7 @@ def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: b
 
 
 def harness_features(exe, gyr, acc, mag=None):
-    """The C filter's feature rows at its window ends: ``(ends (n,), X (n, 74))`` float64, to
+    """The C filter's feature rows at its window ends: ``(ends (n,), X (n, F))`` float64, to
     compare with ``features.compute_features`` (``tcf_harness --features``)."""
     with tempfile.TemporaryDirectory() as tmp:
         fin, fout, ffeat = Path(tmp) / "in.csv", Path(tmp) / "out.csv", Path(tmp) / "feat.csv"

@@ -36,8 +36,8 @@ static void ema_update(float *hi, float *lo, float c, float x) {
 }
 
 /* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
-   0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8-10 mag, 11 |mag|, 12 jerk, 13 mag_norm_dev,
-   14 dip_dev, 15 |gyr|^2 (gyr_energy). */
+   0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8 jerk, 9 mag_norm_dev, 10 dip_dev, 11 |gyr|^2
+   (gyr_energy). The magnetometer enters only relative to its own reference (feature version 2). */
 static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   float *row = f->ring[f->pos];
   float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];
@@ -69,20 +69,17 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   row[3] = sqrtf(gn2);
   row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
   row[7] = an - TCF_GRAVITY;
-  row[8] = mag[0]; row[9] = mag[1]; row[10] = mag[2];
-  row[11] = mn;
-  row[12] = jerk;
-  row[13] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
-  row[14] = (dip - f->ref_dip) - f->ref_dip_lo;
-  row[15] = gn2;
-  /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_x/y/z, mag_norm_dev, dip_dev, acc_hp_x/y/z */
+  row[8] = jerk;
+  row[9] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
+  row[10] = (dip - f->ref_dip) - f->ref_dip_lo;
+  row[11] = gn2;
+  /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_norm_dev, dip_dev, acc_hp_x/y/z */
   f->last[0] = row[3];
   f->last[1] = row[4]; f->last[2] = row[5]; f->last[3] = row[6];
   f->last[4] = row[7];
-  f->last[5] = row[8]; f->last[6] = row[9]; f->last[7] = row[10];
-  f->last[8] = row[13];
-  f->last[9] = row[14];
-  for (i = 0; i < 3; ++i) f->last[10 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
+  f->last[5] = row[9];
+  f->last[6] = row[10];
+  for (i = 0; i < 3; ++i) f->last[7 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
   /* update the references with sample k, only from finite values; a reference that is not
      finite yet (the first samples were bad) starts at the first finite sample */
   if (isfinite(mn) && isfinite(dip)) {
@@ -107,7 +104,7 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
 }
 
 /* Feature row of the window ending at the last pushed sample (window_features): mean, std,
-   min, max of ring columns 0-14, mean of column 15, then the 13 *_last values. A column with a
+   min, max of ring columns 0-10, mean of column 11, then the 10 *_last values. A column with a
    non-finite value in the window gives NaN (missing) stats, as the numba and vectorised code. */
 static void tcf_window_features(const tcf_features_t *f, float out[TCF_N_FEATURES]) {
   int c, i, j;

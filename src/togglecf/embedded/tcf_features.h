@@ -2,7 +2,7 @@
  * tree ensemble, shared by the exported filters (tcf_filter.c: the toggling CF;
  * tcf_vqf_toggling.c: the VQF core with learned time constants).
  *
- * A port of the model part of togglecf.toggling.inloop.inloop_step: per sample, the 16 feature
+ * A port of the model part of togglecf.toggling.inloop.inloop_step: per sample, the 12 feature
  * channels are pushed into a ring buffer of the last TCF_WINDOW samples
  * (togglecf.features.streaming); at every window end (once the window is full, then every
  * TCF_HOP samples) the TCF_N_FEATURES window features are checked against their training range
@@ -11,7 +11,8 @@
  * ensemble (tcf_forest.c: class margins -> softmax, plus the predicted acc/mag noise eta_a,
  * eta_m); the prediction is held until the next window end.
  *
- * Units: gyr rad/s, acc m/s^2, mag uT (the features use its norm in uT). Non-finite samples
+ * Units: gyr rad/s, acc m/s^2, mag uT (the features use its norm and dip only relative to their
+ * running references, see togglecf.features.windows). Non-finite samples
  * enter the window as NaN (a window holding one gives missing stats of that channel; the trees
  * follow their default branches) and do not update the EMA references, which start at the
  * first finite sample.
@@ -35,9 +36,9 @@ extern "C" {
 #endif
 
 /* per-sample channels kept in the ring (togglecf.features.WINDOW_CHANNELS + gyr_energy) */
-#define TCF_RING_COLS 16
+#define TCF_RING_COLS 12
 /* channels whose current value is a feature (togglecf.features.LAST_CHANNELS) */
-#define TCF_N_LAST 13
+#define TCF_N_LAST 10
 /* class probabilities, then eta_a xyz [m/s^2], then eta_m xyz [uT] */
 #define TCF_N_PRED (TCF_N_CLASSES + 6)
 
@@ -66,7 +67,7 @@ typedef struct tcf_features {
 } tcf_features_t;
 
 /* sizeof(tcf_features_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_FEATURES_STATE_BYTES (4 * (35 + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_FEATURES_STATE_BYTES (4 * (22 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
 
 /* Reset: empty window, no prediction. */
 void tcf_features_init(tcf_features_t *s);

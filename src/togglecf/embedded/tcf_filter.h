@@ -8,12 +8,13 @@
  *
  * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth,
  * earth frame ENU (x east, y north, z up). Units: gyr rad/s, acc m/s^2, mag uT (only the
- * magnetometer's direction enters the orientation, but the features use its norm in uT).
+ * magnetometer's direction enters the orientation; the features use its norm relative to a
+ * running reference).
  *
  * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
  * no globals written). At a window end tcf_features_push keeps the feature row and the
  * outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats); in all, 752 bytes of stack for
- * the 74-feature default export (gcc -fstack-usage, rv32imc -Os, deepest call chain).
+ * the 74-feature default export of feature version 1 (version 2 has 55 features: less) (gcc -fstack-usage, rv32imc -Os, deepest call chain).
  * Reentrant: one tcf_filter_t per sensor.
  *
  * Rate: call tcf_filter_update exactly once per sample at TCF_FS Hz (the rate the models and
@@ -56,7 +57,7 @@ typedef struct tcf_filter {
 } tcf_filter_t;
 
 /* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_STATE_BYTES (4 * (52 + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_STATE_BYTES (4 * (39 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
 
 /* Reset: identity orientation, not initialised, empty window, no prediction. */
 void tcf_filter_init(tcf_filter_t *f);

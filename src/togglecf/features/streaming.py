@@ -7,7 +7,7 @@ ending at the current sample. Equal to the vectorised features up to floating-po
 rounding (mean/std are summed directly here, from shifted cumulative sums there).
 
 Layout: ``ring (L, N_RING)`` holds ``WINDOW_CHANNELS`` then ``gyr_energy`` per sample;
-``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(13)]``;
+``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(10)]``;
 ``params`` is the named record ``FeatureCoefficients`` (fs, L, λ_ref, λ_lp, gravity). Non-finite samples do not update the EMA
 references (so one bad sample cannot poison them for the rest of a run; when the first
 samples are bad, the references start at the first finite one); their channels enter the ring
@@ -36,7 +36,7 @@ _ACC_HP = {"acc_hp_x": 0, "acc_hp_y": 1, "acc_hp_z": 2}
 assert all(c in _RING or c in _ACC_HP for c in LAST_CHANNELS), "a LAST channel is neither windowed nor acc_hp"
 _LAST_SRC = np.array([_RING[c] if c in _RING else -1 - _ACC_HP[c] for c in LAST_CHANNELS], np.int64)
 assert WINDOW_CHANNELS == ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
-                           "mag_x", "mag_y", "mag_z", "mag_norm", "jerk", "mag_norm_dev", "dip_dev"), \
+                           "jerk", "mag_norm_dev", "dip_dev"), \
     "features.WINDOW_CHANNELS changed: update push_sample to match"
 
 
@@ -88,12 +88,10 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     row[3] = math.sqrt(gn2)
     row[4], row[5], row[6] = acc[0], acc[1], acc[2]
     row[7] = an - g
-    row[8], row[9], row[10] = mag[0], mag[1], mag[2]
-    row[11] = mn
-    row[12] = jerk
-    row[13] = mn - aux[2]  # uses r_{k-1}
-    row[14] = dip - aux[3]
-    row[15] = gn2
+    row[8] = jerk
+    row[9] = mn - aux[2]  # uses r_{k-1}
+    row[10] = dip - aux[3]
+    row[11] = gn2
     hp0, hp1, hp2 = acc[0] - aux[4], acc[1] - aux[5], acc[2] - aux[6]
     for j in range(last_src.shape[0]):
         s = last_src[j]

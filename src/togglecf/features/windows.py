@@ -9,7 +9,6 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
 
 * ``gyr_x/y/z``, ``gyr_norm = |ω_k|``, ``gyr_energy = |ω_k|²``
 * ``acc_x/y/z``, ``acc_norm_dev = |a_k| − g``
-* ``mag_x/y/z``, ``mag_norm = |m_k|``
 * ``jerk = |a_k − a_{k−1}| · fs`` (0 at ``k = 0``)
 * ``mag_norm_dev = |m_k| − r_{k−1}`` and ``dip_dev = δ_k − d_{k−1}``, with the dip angle
   ``δ_k = asin(−(a_k·m_k)/(|a_k||m_k|))`` [rad] and causal references ``r``, ``d``: exponential
@@ -17,6 +16,12 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
   ``r_{−1} = |m_0|`` (likewise ``d`` of ``δ`` with ``d_{−1} = δ_0``)
 * ``acc_hp_x/y/z = a_k − p_{k−1}``, ``p`` the EMA of ``a`` with ``lp_tau_s`` (``p_{−1} = a_0``): the
   fast part of the specific force, a proxy for linear acceleration and vibration.
+
+The magnetometer enters only relative to its own causal reference (``mag_norm_dev``, ``dip_dev``),
+never as raw components or norm (version 2; version 1 had ``mag_x/y/z`` and ``mag_norm``): the
+field's strength (25–65 µT) and dip angle depend on where the sensor is, so a model that has seen
+them learns its training site's field and mistakes another site's undisturbed field for a
+disturbance (issue 12). A deviation from the reference means the same anywhere.
 
 Non-finite input samples: a window that holds a non-finite value of a channel gives NaN
 statistics of that channel (missing values for the trees); the EMA references hold over bad
@@ -48,12 +53,12 @@ __all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureSchema", "SchemaMismatc
            "window_end_indices", "window_length", "hop_length", "per_sample_channels", "compute_features",
            "trial_features", "WINDOW_CHANNELS", "LAST_CHANNELS"]
 
-FEATURE_VERSION = 1
+FEATURE_VERSION = 2
 WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
-                   "mag_x", "mag_y", "mag_z", "mag_norm", "jerk", "mag_norm_dev", "dip_dev")
+                   "jerk", "mag_norm_dev", "dip_dev")
 STATS = ("mean", "std", "min", "max")
-LAST_CHANNELS = ("gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev", "mag_x", "mag_y", "mag_z",
-                 "mag_norm_dev", "dip_dev", "acc_hp_x", "acc_hp_y", "acc_hp_z")
+LAST_CHANNELS = ("gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev", "mag_norm_dev", "dip_dev",
+                 "acc_hp_x", "acc_hp_y", "acc_hp_z")
 ALL_CHANNELS = tuple(dict.fromkeys(WINDOW_CHANNELS + LAST_CHANNELS + ("gyr_energy",)))
 
 
@@ -200,7 +205,7 @@ def per_sample_channels(gyr, acc, mag, fs: float, settings: FeatureSettings) -> 
     """The per-sample channels of the module docstring, each ``(N,)`` float64."""
     gyr, acc, mag = (np.ascontiguousarray(x, dtype=np.float64) for x in (gyr, acc, mag))
     ch = {}
-    for pre, x in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+    for pre, x in (("gyr", gyr), ("acc", acc)):
         for i, ax in enumerate("xyz"):
             ch[f"{pre}_{ax}"] = x[:, i]
     gn2 = np.einsum("ij,ij->i", gyr, gyr)
@@ -209,7 +214,6 @@ def per_sample_channels(gyr, acc, mag, fs: float, settings: FeatureSettings) -> 
     an = np.sqrt(np.einsum("ij,ij->i", acc, acc))
     mn = np.sqrt(np.einsum("ij,ij->i", mag, mag))
     ch["acc_norm_dev"] = an - GRAVITY
-    ch["mag_norm"] = mn
     jerk = np.zeros(acc.shape[0])
     d = np.diff(acc, axis=0)
     jerk[1:] = np.sqrt(np.einsum("ij,ij->i", d, d)) * fs

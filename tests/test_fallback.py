@@ -8,6 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
+from togglecf.features.windows import FEATURE_VERSION, FeatureSchema, SchemaMismatchError
 from togglecf.filters import VQFCoreFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.dataset import common_rate
@@ -161,6 +162,21 @@ def test_models_without_ranges_are_refused_with_retrain(tiny_model_dir, tmp_path
     meta["bundle_format"] = 2
     (old / "metadata.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match=r"without feature ranges .*retrain it with `togglecf train`"):
+        CompiledModels.from_bundle(load_bundle(old))
+
+
+def test_models_of_an_older_feature_version_are_refused_with_retrain(tiny_model_dir, tmp_path):
+    """Feature version 1 had raw magnetometer channels: its trees index other columns, so no
+    setting can feed them; the message says to retrain (and names the directory)."""
+    old = tmp_path / "v1"
+    shutil.copytree(tiny_model_dir, old)
+    meta = json.loads((old / "metadata.json").read_text())
+    schema = dict(meta["feature_schema"], version=FEATURE_VERSION - 1)
+    schema["hash"] = FeatureSchema.from_dict({k: v for k, v in schema.items() if k != "hash"}).hash
+    meta["feature_schema"] = schema
+    (old / "metadata.json").write_text(json.dumps(meta))
+    with pytest.raises(SchemaMismatchError, match=rf"{old}: trained on feature schema v{FEATURE_VERSION - 1}, "
+                                                  rf"this togglecf computes v{FEATURE_VERSION}.*retrain it"):
         CompiledModels.from_bundle(load_bundle(old))
 
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from togglecf.data.broad import GRAVITY
+from togglecf.simulate import imu_from_orientation, mag_disturbance_intervals, random_smooth_trajectory
 from togglecf.features.windows import (LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, SchemaMismatchError,
                                compute_features, feature_schema, hop_length, window_end_indices,
                                window_length)
@@ -130,3 +131,31 @@ def test_schema_hash_and_check():
         a.check(reordered)
     with pytest.raises(ValueError, match="window_s"):
         FeatureSettings(window_s=0.0)
+
+
+def _field_enu(norm_ut, dip_deg):
+    """The earth's field in ENU at a site: ``norm_ut`` [µT], pointing ``dip_deg`` below north."""
+    d = math.radians(dip_deg)
+    return np.array([0.0, norm_ut * math.cos(d), -norm_ut * math.sin(d)])
+
+
+def test_features_do_not_see_the_site_of_an_undisturbed_field():
+    """The same motion at two sites (BROAD's lab ~44 µT, dip ~69°; the phone data's median ~42 µT,
+    dip ~55°; here the extremes 60 µT / 70° and 25 µT / 20°) gives the same features: the
+    magnetometer enters only relative to its running reference (feature version 2). The
+    tolerance is rounding: the undisturbed |m| and dip are constant, so their deviations are
+    differences of nearly equal numbers (~1e-14 µT, ~1e-15 rad)."""
+    fs = 100.0
+    q = random_smooth_trajectory(fs, 6.0, seed=3)
+    feats = []
+    for norm, dip in ((60.0, 70.0), (25.0, 20.0)):
+        t = imu_from_orientation(q, fs, mag_earth=_field_enu(norm, dip))
+        feats.append(compute_features(t.gyr, t.acc, t.mag, fs)[0])
+    np.testing.assert_allclose(feats[0], feats[1], rtol=0, atol=1e-9)
+    # and a disturbance does show: 10 µT along east for 1 s moves mag_norm_dev
+    t = imu_from_orientation(q, fs, mag_earth=_field_enu(25.0, 20.0),
+                             mag_disturbance_earth=mag_disturbance_intervals(len(q), fs, ((3.0, 4.0, (10.0, 0.0, 0.0)),)))
+    X, ends = compute_features(t.gyr, t.acc, t.mag, fs)
+    col = feature_schema().names.index("mag_norm_dev_last")
+    inside = (ends >= 3.1 * fs) & (ends < 4.0 * fs)
+    assert np.all(np.abs(X[inside, col]) > 1.0) and np.all(np.abs(feats[1][~inside & (ends < 3 * fs), col]) < 1e-9)

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from togglecf.features.windows import FeatureSettings, compute_features, feature_schema, window_length
+from togglecf.features.windows import (FEATURE_VERSION, FeatureSettings, SchemaMismatchError, compute_features,
+                                       feature_schema, window_length)
 from togglecf.filters.toggling import N_PRED_NOISE
 from togglecf.learn.ranges import range_arrays, windows_out_of_range
 from togglecf.learn.trees import FlatForest, softmax
@@ -37,8 +38,13 @@ class CompiledModels:
 
     @classmethod
     def from_bundle(cls, bundle) -> "CompiledModels":
+        where = bundle.path or "model bundle"
+        if bundle.schema.version != FEATURE_VERSION:  # other feature definitions: no setting recomputes them
+            raise SchemaMismatchError(f"{where}: trained on feature schema v{bundle.schema.version}, this togglecf "
+                                      f"computes v{FEATURE_VERSION} (togglecf.features.windows): retrain it with "
+                                      "`togglecf train`")
         settings = FeatureSettings.from_dict({k: v for k, v in bundle.schema.settings.items() if k != "gravity"})
-        feature_schema(settings).check(bundle.schema, "streaming features")  # same definitions as training
+        bundle.schema.check(feature_schema(settings), str(where))  # same definitions as training
         forests = [FlatForest.from_booster(bundle.classifier.booster_)]
         for target in ("acc", "mag"):
             forests += [FlatForest.from_booster(b) for b in bundle.regressors[target].boosters_]

@@ -70,3 +70,4 @@ def test_study_report_and_no_leakage(broad_index, tmp_path):
     assert {"total", "heading", "inclination", "roll", "pitch", "yaw", "us_per_sample"} <= set(per_group.index.get_level_values(0))
     summary = (out / "summary.md").read_text()
     assert "Δ madgwick" in summary and "Ablations" in summary
+    assert f"({len(res['trials'])} BROAD trials, 9D)" in summary.splitlines()[0]  # one dataset: no dataset names

@@ -105,7 +105,9 @@ def _summary(df, per_group, result) -> str:
     wide = df.pivot_table(index="trial", columns="filter", values="total")
     speed = df.groupby("filter")["us_per_sample"].median() if "us_per_sample" in df else pd.Series(dtype=float)
     n = len(result["trials"])
-    lines = [f"# Held-out study: toggling CF vs classic filters and VQF ({n} BROAD trials, 9D)", ""]
+    datasets = sorted({t.split("/")[0] for t in result["trials"] if "/" in t})  # several: "<dataset>/<trial>"
+    where = f"{n} trials of {', '.join(datasets)}" if datasets else f"{n} BROAD trials"
+    lines = [f"# Held-out study: toggling CF vs classic filters and VQF ({where}, 9D)", ""]
     lines += ["Every trial is filtered with models and gains trained **without** it "
               f"({len(result['folds'])} folds by whole trial); each baseline runs at its TAGP over the same "
               "training folds; VQF at its defaults. RMSE in degrees over BROAD's movement samples.", ""]

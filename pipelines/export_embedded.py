@@ -3,7 +3,7 @@
 Trains the pruned point for 32 KB of rv32imc -Os object code (the ESP32-C3) on the trials of
 models/default and writes build/embedded/default/{models,array,tl2cgen,filter}/ plus
 export_report.json: the best point of the pruning sweep in build/embedded/default/sweep when one
-is there, else the default point (10 trees x depth 4, all features: the sweep's choice for
+is there, else the default point (10 trees x depth 4, all features: the feature-v1 sweep's choice for
 32 KB, ``togglecf.run.prune.DEFAULT_EXPORT_POINT``); minutes. Add ``--full-sweep`` to run (or
 resume) the sweep first (~30 min on 2 cores; every point judged by the toggling filter's held-out
 BROAD error, as the study). Train models/default first (`togglecf train`). Any option of

@@ -221,7 +221,8 @@ def test_export_max_bytes_without_sweep_uses_the_default_point(tiny_model_dir, m
     # a budget the default point cannot meet: refused before any training
     assert main([*args, "--max-bytes", "8000"]) == 1
     err = capsys.readouterr().err
-    assert "below the default pruned point's 17715 bytes" in err and "--full-sweep" in err and len(calls) == 1
+    assert (f"below the default pruned point's {prune.DEFAULT_EXPORT_SIZES['array_host_bytes']} bytes" in err
+            and "--full-sweep" in err and len(calls) == 1)
     # --full-sweep: the sweep runs (here: stubbed to one row) and its best point is trained
     row = {"key": "c3x2_r3x2_f6", "clf_trees": 3, "clf_depth": 2, "reg_trees": 3, "reg_depth": 2, "max_features": 6,
            "reference": False, "features_used": 6, "mean_total": 3.0, "array_host_bytes": 5000,

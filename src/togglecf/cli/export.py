@@ -65,7 +65,7 @@ def add_export_parser(subparsers):
                     "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "
                     "error whose RISC-V object code (array format; tl2cgen with --format tl2cgen) fits in N bytes, "
                     f"else the default point ({DEFAULT_EXPORT_POINT.clf_trees} trees x depth "
-                    f"{DEFAULT_EXPORT_POINT.clf_depth}, all features: the sweep's choice for 32 KB); minutes")
+                    f"{DEFAULT_EXPORT_POINT.clf_depth}, all features: the feature-v1 sweep's choice for 32 KB); minutes")
     sp.add_argument("--full-sweep", action="store_true",
                     help="with --max-bytes: run (or resume) the pruning sweep of --models in --sweep DIR first "
                     "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")

@@ -65,34 +65,39 @@ class FeatureCoefficients(NamedTuple):
 def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     """Append one sample's channels (definitions in ``togglecf.features.windows``)."""
     fs, L, lam_ref, lam_lp, g = params.fs, params.window_length, params.ref_decay, params.lp_decay, params.gravity
+    # the sample is read once into locals: numba cannot prove that gyr/acc/mag do not alias ring or
+    # aux, so each read after a store to them would load it again (bench_toggling's in-loop cost)
+    gx, gy, gz = gyr[0], gyr[1], gyr[2]
+    ax, ay, az = acc[0], acc[1], acc[2]
+    mx, my, mz = mag[0], mag[1], mag[2]
     count = int(aux[0])
     pos = int(aux[1])
-    gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2]
-    an = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
-    mn = math.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
-    cosang = (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) if an * mn > 0.0 else 0.0
+    gn2 = gx * gx + gy * gy + gz * gz
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    mn = math.sqrt(mx * mx + my * my + mz * mz)
+    cosang = (ax * mx + ay * my + az * mz) / (an * mn) if an * mn > 0.0 else 0.0
     if not math.isfinite(cosang):
         cosang = 0.0  # nan_to_num, as the vectorised version
     dip = math.asin(min(1.0, max(-1.0, -cosang)))
     if count == 0:  # EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = δ_0, p_{-1} = a_0
         aux[2] = mn
         aux[3] = dip
-        aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
-        aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]
+        aux[4], aux[5], aux[6] = ax, ay, az
+        aux[7], aux[8], aux[9] = ax, ay, az
         jerk = 0.0
     else:
-        dx, dy, dz = acc[0] - aux[7], acc[1] - aux[8], acc[2] - aux[9]
+        dx, dy, dz = ax - aux[7], ay - aux[8], az - aux[9]
         jerk = math.sqrt(dx * dx + dy * dy + dz * dz) * fs
     row = ring[pos]
-    row[0], row[1], row[2] = gyr[0], gyr[1], gyr[2]
+    row[0], row[1], row[2] = gx, gy, gz
     row[3] = math.sqrt(gn2)
-    row[4], row[5], row[6] = acc[0], acc[1], acc[2]
+    row[4], row[5], row[6] = ax, ay, az
     row[7] = an - g
     row[8] = jerk
     row[9] = mn - aux[2]  # uses r_{k-1}
     row[10] = dip - aux[3]
     row[11] = gn2
-    hp0, hp1, hp2 = acc[0] - aux[4], acc[1] - aux[5], acc[2] - aux[6]
+    hp0, hp1, hp2 = ax - aux[4], ay - aux[5], az - aux[6]
     for j in range(last_src.shape[0]):
         s = last_src[j]
         aux[10 + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
@@ -106,11 +111,12 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
             aux[2], aux[3] = mn, dip
     if math.isfinite(an):
         if math.isfinite(aux[4]) and math.isfinite(aux[5]) and math.isfinite(aux[6]):
-            for i in range(3):
-                aux[4 + i] = lam_lp * aux[4 + i] + (1.0 - lam_lp) * acc[i]
+            aux[4] = lam_lp * aux[4] + (1.0 - lam_lp) * ax
+            aux[5] = lam_lp * aux[5] + (1.0 - lam_lp) * ay
+            aux[6] = lam_lp * aux[6] + (1.0 - lam_lp) * az
         else:
-            aux[4], aux[5], aux[6] = acc[0], acc[1], acc[2]
-    aux[7], aux[8], aux[9] = acc[0], acc[1], acc[2]  # jerk next to a bad sample is missing, as in features
+            aux[4], aux[5], aux[6] = ax, ay, az
+    aux[7], aux[8], aux[9] = ax, ay, az  # jerk next to a bad sample is missing, as in features
     aux[0] = count + 1
     aux[1] = (pos + 1) % L
 

@@ -22,6 +22,10 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
+from togglecf.run.config import load_config
+from togglecf.run.train import run_training
+from togglecf.toggling.gains import save_gains
+from togglecf.toggling.load import load_compiled_models
 
 REQUIRE_DATA = os.environ.get("TOGGLECF_REQUIRE_DATA") == "1"
 sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
@@ -101,8 +105,6 @@ def mini_trial(mini_index):
 
 def train_tiny_models(data_dir, trials, out):
     """Train the tiny models (15 + 10 trees of depth 4; no CV, no gains) on ``trials`` into ``out``."""
-    from togglecf.run.config import load_config
-    from togglecf.run.train import run_training
 
     cfg = load_config()
     cfg["classifier"].update(n_estimators=15, max_depth=4)
@@ -116,8 +118,6 @@ def with_fixed_gains(model_dir, settings_for, trials=("fixed-in-test",)):
     """Store fixed (not learned) gains in ``model_dir`` for 9D and 6D and return it:
     ``settings_for(class_names, static_state, use_mag)`` gives the settings, or a tuple of settings
     (one per learned filter kind)."""
-    from togglecf.toggling.gains import save_gains
-    from togglecf.toggling.load import load_compiled_models
 
     m = load_compiled_models(model_dir)
     for use_mag in (True, False):

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import train_tiny_models, with_fixed_gains
 from togglecf.embedded import cfilter, toolchain
 from togglecf.core.quaternion import angle_between
 from togglecf.embedded.toolchain import c_float
@@ -77,16 +78,12 @@ def base_model_dir(mini_index, tmp_path_factory):
     over ~270 windows; window min/max features are sample values whatever the hop phase), so the
     float32 C features often land on the other side of a threshold there, and the held predictions
     of C and Python differ far more often on training cuts than on an unseen trial."""
-    from conftest import train_tiny_models
-
     return train_tiny_models(mini_index.root, "02,07", tmp_path_factory.mktemp("cf_base") / "tiny")
 
 
 @pytest.fixture(scope="module")
 def model_dir(base_model_dir, tmp_path_factory):
     """A copy of the tiny model directory with fixed (not learned) 9D and 6D gains."""
-    from conftest import with_fixed_gains
-
     d = tmp_path_factory.mktemp("cf_models") / "tiny"
     shutil.copytree(base_model_dir, d)
     return with_fixed_gains(d, _gains)

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import with_fixed_gains
 from togglecf.core.quaternion import angle_between
 from togglecf.embedded import cvqf_toggling as cv
 
@@ -85,8 +86,6 @@ def _vqf_settings(class_names, use_mag):
 @pytest.fixture(scope="module")
 def model_dir(tiny_model_dir, tmp_path_factory):
     """A copy of the tiny model directory with fixed vqf_9d and vqf_6d gains."""
-    from conftest import with_fixed_gains
-
     d = tmp_path_factory.mktemp("cvqft_models") / "tiny"
     shutil.copytree(tiny_model_dir, d)
     return with_fixed_gains(d, lambda classes, _static, use_mag: _vqf_settings(classes, use_mag))

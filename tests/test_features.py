@@ -140,8 +140,8 @@ def _field_enu(norm_ut, dip_deg):
 
 
 def test_features_do_not_see_the_site_of_an_undisturbed_field():
-    """The same motion at two sites (BROAD's lab ~44 µT, dip ~69°; the phone data's median ~42 µT,
-    dip ~55°; here the extremes 60 µT / 70° and 25 µT / 20°) gives the same features: the
+    """The same motion at two sites (60 µT / dip 70° and 25 µT / dip 20°: farther apart than
+    BROAD's lab and the phone data) gives the same features: the
     magnetometer enters only relative to its running reference (feature version 2). The
     tolerance is rounding: the undisturbed |m| and dip are constant, so their deviations are
     differences of nearly equal numbers (~1e-14 µT, ~1e-15 rad)."""

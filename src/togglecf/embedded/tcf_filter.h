@@ -13,8 +13,10 @@
  *
  * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
  * no globals written). At a window end tcf_features_push keeps the feature row and the
- * outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats); in all, 752 bytes of stack for
- * the 74-feature default export of feature version 1 (version 2 has 55 features: less) (gcc -fstack-usage, rv32imc -Os, deepest call chain).
+ * outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats); in all, 560 bytes of stack for
+ * a 55-feature export (feature version 2; gcc -fstack-usage -fcallgraph-info, rv32imc -Os, the
+ * deepest chain tcf_filter_update -> tcf_predict over the three sources as one unit,
+ * togglecf.embedded.toolchain.call_chain_stack).
  * Reentrant: one tcf_filter_t per sensor.
  *
  * Rate: call tcf_filter_update exactly once per sample at TCF_FS Hz (the rate the models and

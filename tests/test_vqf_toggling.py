@@ -11,6 +11,7 @@ from togglecf.registry import VQF_TOGGLING, FilterSpec
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.toggling import load_gains
+from togglecf.toggling.gains import VQFGainSearch
 from togglecf.toggling.inloop import ModelVQFTogglingFilter
 
 STATES = ("rest", "rotation", "linear_acceleration", "vibration")
@@ -101,6 +102,17 @@ def test_bounds_keep_every_correction_on():
         VQFTogglingSettings(states=("a", "b"), mag_disturbance_scale=-1.0)
     with pytest.raises(ValueError, match="one value per state"):
         VQFTogglingSettings(states=("a", "b"), tau_mag_states=(9.0,))
+
+
+def test_sigma_motion_is_not_learned_by_default():
+    """σ_motion is a property of the gyroscope (docs/concepts/vqf-core.md): by default the search,
+    in code and in the shipped config, offers only the core's value, so the learned filter keeps it."""
+    core = VQFTogglingSettings(states=STATES).bias_sigma_motion
+    for search in (VQFGainSearch(), VQFGainSearch.from_dict(load_config()["gains"]["vqf"])):
+        grids = dict(search.candidates(search.start(STATES)))
+        for s in STATES:
+            assert [v for v, _ in grids[f"bias_sigma_motion_states[{s}]"]] == [core]
+        assert len(grids[f"tau_mag_states[{STATES[0]}]"]) > 1  # the other per-state values are still searched
 
 
 def test_update_equals_batch_and_state_splits(mini_trial, rng):

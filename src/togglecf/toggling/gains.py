@@ -117,10 +117,9 @@ class VQFGainSearch:
 
     σ_motion's grid is the core's value alone (not learned) by default: it is the steady-state
     uncertainty of the gyro-bias estimate, a property of the gyroscope rather than of the motion,
-    and values learned per state on one sensor do not travel (issue 12: trained on BROAD, a grid
-    of 0.03/0.1/0.3 °/s lowered the training objective by 0.013° and raised the phone data's
-    error from 11.86° to 24.32°; docs/concepts/vqf-core.md). A grid of several values still
-    learns it, for data of one sensor."""
+    and values learned per state on one sensor do not travel to another (issue 12; the measurement
+    is in docs/concepts/vqf-core.md). A grid of several values still learns it, for data of one
+    sensor."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
     tau_mag: tuple = (2.0, 5.0, 9.0, 20.0, 50.0, 120.0)

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from togglecf.data.broad import GRAVITY
-from togglecf.simulate import imu_from_orientation, mag_disturbance_intervals, random_smooth_trajectory
 from togglecf.features.windows import (LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, SchemaMismatchError,
-                               compute_features, feature_schema, hop_length, window_end_indices,
-                               window_length)
+                                       compute_features, feature_schema, hop_length, window_end_indices,
+                                       window_length)
+from togglecf.simulate import imu_from_orientation, mag_disturbance_intervals, random_smooth_trajectory
 
 FS = 100.0
 

@@ -184,6 +184,39 @@ def test_c_features_match_compute_features(exported, model_dir, mini_trial):
     assert np.isfinite(X[ends > 3100]).all()
 
 
+def test_c_field_reference_matches_python_through_a_new_field(exported, model_dir, mini_trial):
+    """The gated field reference (features v3) in C: a sensor turning at 30 °/s whose field is 20 %
+    stronger from 5 s to 40 s, a NaN and a zero-norm sample among it. Every branch is taken (the
+    stronger field is a disturbance for ref_new_s = 20 s, then the reference; the old field is a
+    disturbance in turn), and the C features follow compute_features with the tolerances above."""
+    from togglecf.features.windows import compute_features, feature_schema
+    from togglecf.learn.compiled import CompiledModels
+    from togglecf.learn.models import load_bundle
+
+    settings = CompiledModels.from_bundle(load_bundle(model_dir)).feature_settings
+    _, exe = exported["9d"]
+    fs = mini_trial.fs
+    t = np.arange(int(50.0 * fs)) / fs
+    w = np.radians(30.0)
+    gyr = np.zeros((t.size, 3))
+    gyr[:, 2] = w
+    acc = np.tile([0.0, 0.0, 9.81], (t.size, 1))
+    mag = np.stack([25.0 * np.sin(w * t), 25.0 * np.cos(w * t), np.full(t.size, -43.3)], axis=1)
+    mag[(t >= 5.0) & (t < 40.0)] *= 1.2
+    mag[int(7.0 * fs)] = np.nan
+    mag[int(8.0 * fs)] = 0.0
+    ends_c, Xc = cfilter.harness_features(exe, gyr, acc, mag)
+    X, ends = compute_features(gyr, acc, mag, fs, settings)
+    assert np.array_equal(ends_c, ends)
+    np.testing.assert_array_equal(np.isnan(Xc), np.isnan(X))
+    np.testing.assert_allclose(Xc, X, rtol=1e-3, atol=1e-4)
+    dev = X[:, feature_schema(settings).names.index("mag_norm_dev_last")]
+    te = ends / fs
+    assert np.all(np.abs(dev[(te > 10.0) & (te < 24.0)] - 10.0) < 0.01)  # held: the disturbance shows
+    assert np.all(np.abs(dev[(te > 27.0) & (te < 40.0)]) < 0.01)  # taken as the new field
+    assert np.all(np.abs(dev[te > 41.0] + 10.0) < 0.01)  # the old field is now the disturbance
+
+
 def test_c_held_predictions_match_python(exported, model_dir, cf_trial):
     rep, exe = exported["9d"]
     py = _python(model_dir, cf_trial, True)
@@ -291,7 +324,7 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
     for mode, (rep, _) in exported.items():
         L, S = rep["window"], rep["n_classes"]
         assert rep["state_bytes"] > 0
-        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (49 + 12 * L + S)
+        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (54 + 12 * L + S)
         assert rep["n_trees"] < len(full.roots)  # unused outputs' trees are not exported
         names = {Path(f).name for f in rep["files"]}
         assert {"tcf_filter.h", "tcf_filter.c", "tcf_config.h", "tcf_forest.h", "tcf_forest.c", "tcf_harness.c",

@@ -11,8 +11,10 @@ RTOL, ATOL = 1e-8, 1e-8
 
 
 @pytest.mark.broad
-@pytest.mark.parametrize("settings", [FeatureSettings(), FeatureSettings(window_s=0.1, hop_s=0.02, ref_tau_s=2.0,
-                                                                         lp_tau_s=0.1)])
+@pytest.mark.parametrize("settings", [
+    FeatureSettings(), FeatureSettings(window_s=0.1, hop_s=0.02, ref_tau_s=2.0, lp_tau_s=0.1),
+    # tight field gates and a short new-field time: every branch of the field reference is taken often
+    FeatureSettings(ref_norm_th=0.005, ref_dip_th_deg=0.5, ref_new_s=0.2, ref_new_min_gyr_dps=5.0)])
 def test_streaming_equals_vectorised_on_real_data(broad_trial, settings):
     n = 6000
     t = broad_trial.slice(20000, 20000 + n)  # a moving part of the trial

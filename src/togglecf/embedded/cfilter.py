@@ -69,10 +69,10 @@ _FS_RTOL = 1e-3
 
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (49 + 12 L + S)`` (49 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, EMA references
-    as hi + lo 10, previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3;
-    12 L the ring; S the class probabilities)."""
-    return 4 * (49 + 12 * int(window) + int(n_classes))
+    ``4 · (54 + 12 L + S)`` (54 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, EMA references
+    as hi + lo 10, candidate field as hi + lo 4 and its count 1, previous acc 3, last-sample
+    features 10, counters 3, η̂ 6, diagnostics 3; 12 L the ring; S the class probabilities)."""
+    return 4 * (54 + 12 * int(window) + int(n_classes))
 
 
 
@@ -134,8 +134,12 @@ def features_config(*, fs: float, window: int, hop: int, feat_params, models) ->
 /* features (togglecf.features.windows.FeatureSettings of the model) */
 #define TCF_WINDOW {window}          /* samples per window, L */
 #define TCF_HOP {hop}               /* samples between predictions, H */
-#define TCF_LAM_REF {c_float(lam_ref)}     /* exp(-1 / (ref_tau_s fs)): |m| and dip references */
+#define TCF_LAM_REF {c_float(lam_ref)}     /* exp(-1 / (ref_tau_s fs)): |m| and dip reference and candidate */
 #define TCF_LAM_REF_C {c_float(1.0 - lam_ref)}   /* 1 - TCF_LAM_REF (rounded from float64) */
+#define TCF_REF_NORM_TH {c_float(feat_params.ref_norm_th)}   /* field agrees: ||m| - r| < this * r */
+#define TCF_REF_DIP_TH {c_float(feat_params.ref_dip_th)}    /* rad, and |dip - d| < this */
+#define TCF_REF_NEW_N {int(feat_params.ref_new_samples)}u     /* round(ref_new_s fs): rotating samples to take a new field */
+#define TCF_REF_MIN_GYR_SQ {c_float(feat_params.ref_new_min_gyr_sq)}   /* (rad/s)^2: a sample counts as rotating from this |w|^2 */
 #define TCF_LAM_LP {c_float(lam_lp)}      /* exp(-1 / (lp_tau_s fs)): acc low-pass */
 #define TCF_LAM_LP_C {c_float(1.0 - lam_lp)}
 #define TCF_GRAVITY {c_float(gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
@@ -361,7 +365,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
               "schema_hash": schema_hash,
               "model_hash": model_hash, "gains_sha256": gains_hash,
               "fallback": fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (49 + 12 * window + n_classes)",
+              "state_bytes_formula": "4 * (54 + 12 * window + n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = _measure_state_bytes(out_dir)
     if documented != report["state_bytes_documented"]:

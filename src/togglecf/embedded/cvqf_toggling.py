@@ -126,10 +126,10 @@ _AMALGAMATION = "".join(f'#include "{s}"\n' for s in VQFT_SOURCES)
 
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_vqft_t)`` as documented in ``tcf_vqf_toggling.h``: the core's 532 bytes, the
-    features ``4 · (32 + 12 L + S)`` (ring 12 L; EMA references 10, previous acc 3, last-sample
-    features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (16 + S)`` (modulation 7,
-    diagnostics 3, the last prediction S + 6)."""
-    return 532 + 4 * (32 + 12 * int(window) + int(n_classes)) + 4 * (16 + int(n_classes))
+    features ``4 · (37 + 12 L + S)`` (ring 12 L; EMA references 10, candidate field 5, previous acc
+    3, last-sample features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (16 + S)``
+    (modulation 7, diagnostics 3, the last prediction S + 6)."""
+    return 532 + 4 * (37 + 12 * int(window) + int(n_classes)) + 4 * (16 + int(n_classes))
 
 
 def _c_string(s: str) -> str:

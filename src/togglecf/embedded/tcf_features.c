@@ -35,9 +35,45 @@ static void ema_update(float *hi, float *lo, float c, float x) {
   *hi = t;
 }
 
+/* The field reference after sample k (togglecf.features.windows.mag_reference_step; VQF's
+   eqs. M2-M3 in the sensor frame): the reference follows |m| and the dip only while they agree
+   with it; a candidate that has agreed with itself for TCF_REF_NEW_N rotating samples replaces a
+   reference the field disagrees with. dm, dd: the deviations from r_{k-1}, d_{k-1} (row[9], row[10]). */
+static void mag_reference_update(tcf_features_t *f, float mn, float dip, float dm, float dd, float gn2) {
+  int agree;
+  float cm, cd;
+  if (!(isfinite(mn) && isfinite(dip) && mn > 0.0f)) return;  /* a bad or zero-norm sample says nothing */
+  if (!(isfinite(f->ref_mag) && isfinite(f->ref_dip) && f->ref_mag > 0.0f)) {  /* no reference yet: start here */
+    f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
+    f->cand_mag = mn; f->cand_dip = dip; f->cand_mag_lo = 0.0f; f->cand_dip_lo = 0.0f;
+    f->cand_n = 0u;
+    return;
+  }
+  agree = fabsf(dm) < TCF_REF_NORM_TH * f->ref_mag && fabsf(dd) < TCF_REF_DIP_TH;  /* (M2) */
+  if (agree) {
+    ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
+    ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
+  }
+  cm = (mn - f->cand_mag) - f->cand_mag_lo;
+  cd = (dip - f->cand_dip) - f->cand_dip_lo;
+  if (fabsf(cm) < TCF_REF_NORM_TH * f->cand_mag && fabsf(cd) < TCF_REF_DIP_TH) {  /* (M3) */
+    if (gn2 >= TCF_REF_MIN_GYR_SQ && f->cand_n < TCF_REF_NEW_N) f->cand_n++;
+    ema_update(&f->cand_mag, &f->cand_mag_lo, TCF_LAM_REF_C, mn);
+    ema_update(&f->cand_dip, &f->cand_dip_lo, TCF_LAM_REF_C, dip);
+    if (!agree && f->cand_n >= TCF_REF_NEW_N) {  /* a new field: the candidate becomes the reference */
+      f->ref_mag = f->cand_mag; f->ref_mag_lo = f->cand_mag_lo;
+      f->ref_dip = f->cand_dip; f->ref_dip_lo = f->cand_dip_lo;
+    }
+  } else {
+    f->cand_mag = mn; f->cand_dip = dip; f->cand_mag_lo = 0.0f; f->cand_dip_lo = 0.0f;
+    f->cand_n = 0u;
+  }
+}
+
 /* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
    0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8 jerk, 9 mag_norm_dev, 10 dip_dev, 11 |gyr|^2
-   (gyr_energy). The magnetometer enters only relative to its own reference (feature version 2). */
+   (gyr_energy). The magnetometer enters only relative to its own reference (feature version 2 on;
+   the gated reference of version 3). */
 static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   float *row = f->ring[f->pos];
   float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];
@@ -50,11 +86,16 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   c = -cosang;
   c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
   dip = asinf(c);
-  if (f->n_filled == 0) {  /* EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
+  if (f->n_filled == 0) {  /* references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
     f->ref_mag = mn;
     f->ref_dip = dip;
     f->ref_mag_lo = 0.0f;
     f->ref_dip_lo = 0.0f;
+    f->cand_mag = mn;
+    f->cand_dip = dip;
+    f->cand_mag_lo = 0.0f;
+    f->cand_dip_lo = 0.0f;
+    f->cand_n = 0u;
     for (i = 0; i < 3; ++i) {
       f->acc_lp[i] = acc[i];
       f->acc_lp_lo[i] = 0.0f;
@@ -82,14 +123,7 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   for (i = 0; i < 3; ++i) f->last[7 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
   /* update the references with sample k, only from finite values; a reference that is not
      finite yet (the first samples were bad) starts at the first finite sample */
-  if (isfinite(mn) && isfinite(dip)) {
-    if (isfinite(f->ref_mag) && isfinite(f->ref_dip)) {
-      ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
-      ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
-    } else {
-      f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
-    }
-  }
+  mag_reference_update(f, mn, dip, row[9], row[10], gn2);
   if (isfinite(an)) {
     if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
       for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
@@ -174,6 +208,11 @@ void tcf_features_init(tcf_features_t *f) {
   f->ref_dip = 0.0f;
   f->ref_mag_lo = 0.0f;
   f->ref_dip_lo = 0.0f;
+  f->cand_mag = 0.0f;
+  f->cand_mag_lo = 0.0f;
+  f->cand_dip = 0.0f;
+  f->cand_dip_lo = 0.0f;
+  f->cand_n = 0u;
   for (j = 0; j < 3; ++j) {
     f->acc_lp[j] = 0.0f;
     f->acc_lp_lo[j] = 0.0f;

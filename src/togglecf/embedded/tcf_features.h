@@ -14,13 +14,14 @@
  * Units: gyr rad/s, acc m/s^2, mag uT (the features use its norm and dip only relative to their
  * running references, see togglecf.features.windows). Non-finite samples
  * enter the window as NaN (a window holding one gives missing stats of that channel; the trees
- * follow their default branches) and do not update the EMA references, which start at the
+ * follow their default branches) and do not update the references, which start at the
  * first finite sample.
  *
  * Memory: all in tcf_features_t (fixed size, TCF_FEATURES_STATE_BYTES; no heap, no globals
  * written). At a window end tcf_features_push keeps the feature row and the tree outputs on
  * the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats). Configuration: tcf_config.h of the export
- * (TCF_FS, TCF_WINDOW, TCF_HOP, EMA constants, TCF_GRAVITY, the feature ranges).
+ * (TCF_FS, TCF_WINDOW, TCF_HOP, EMA constants, the field-reference gates, TCF_GRAVITY, the
+ * feature ranges).
  *
  * Do not compile with -ffast-math (the NaN tests would be removed).
  */
@@ -54,8 +55,11 @@ extern "C" {
 
 typedef struct tcf_features {
   float ring[TCF_WINDOW][TCF_RING_COLS];
-  float ref_mag, ref_mag_lo;  /* EMA r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_features.c) */
-  float ref_dip, ref_dip_lo;  /* EMA d_{k-1} of the dip angle [rad], hi + lo */
+  float ref_mag, ref_mag_lo;  /* reference r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_features.c) */
+  float ref_dip, ref_dip_lo;  /* reference d_{k-1} of the dip angle [rad], hi + lo */
+  float cand_mag, cand_mag_lo;  /* candidate new field: |m| [uT], hi + lo */
+  float cand_dip, cand_dip_lo;  /* and its dip [rad], hi + lo */
+  uint32_t cand_n;     /* rotating samples the candidate has agreed with itself (saturates at TCF_REF_NEW_N) */
   float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
   float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */
   float last[TCF_N_LAST];  /* the *_last features of the newest sample */
@@ -67,7 +71,7 @@ typedef struct tcf_features {
 } tcf_features_t;
 
 /* sizeof(tcf_features_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_FEATURES_STATE_BYTES (4 * (22 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_FEATURES_STATE_BYTES (4 * (27 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
 
 /* Reset: empty window, no prediction. */
 void tcf_features_init(tcf_features_t *s);

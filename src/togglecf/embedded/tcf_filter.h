@@ -59,7 +59,7 @@ typedef struct tcf_filter {
 } tcf_filter_t;
 
 /* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_STATE_BYTES (4 * (39 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_STATE_BYTES (4 * (44 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
 
 /* Reset: identity orientation, not initialised, empty window, no prediction. */
 void tcf_filter_init(tcf_filter_t *f);

@@ -7,28 +7,39 @@ ending at the current sample. Equal to the vectorised features up to floating-po
 rounding (mean/std are summed directly here, from shifted cumulative sums there).
 
 Layout: ``ring (L, N_RING)`` holds ``WINDOW_CHANNELS`` then ``gyr_energy`` per sample;
-``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(10)]``;
-``params`` is the named record ``FeatureCoefficients`` (fs, L, λ_ref, λ_lp, gravity). Non-finite samples do not update the EMA
-references (so one bad sample cannot poison them for the rest of a run; when the first
-samples are bad, the references start at the first finite one); their channels enter the ring
-as NaN, which the trees treat as missing values.
+``aux`` holds ``[count, pos, r_mag, d_dip, p_acc(3), prev_acc(3), last channels(10), c_mag, c_dip,
+n_cand]`` (the field reference, the acc low-pass, the candidate field of
+``windows.mag_reference_step``); ``params`` is the named record ``FeatureCoefficients`` of
+``windows.feature_coefficients``. Non-finite samples do not update the references (so one bad
+sample cannot poison them for the rest of a run; when the first samples are bad, the
+references start at the first finite one); their channels enter the ring as NaN, which the
+trees treat as missing values.
 """
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, FeatureSettings, feature_schema, window_length
+from togglecf.features.windows import (
+    LAST_CHANNELS,
+    WINDOW_CHANNELS,
+    FeatureCoefficients,
+    FeatureSettings,
+    feature_coefficients,
+    feature_schema,
+    mag_reference_step,
+)
 
 __all__ = ["N_AUX", "N_RING", "FeatureCoefficients", "StreamingFeatures", "push_sample", "window_features"]
 
 N_WINDOW = len(WINDOW_CHANNELS)
 N_RING = N_WINDOW + 1
 N_LAST = len(LAST_CHANNELS)
-N_AUX = 10 + N_LAST
+AUX_LAST = 10  # aux index of the first *_last value
+AUX_CAND = AUX_LAST + N_LAST  # aux index of the candidate field (c_mag, c_dip, n_cand)
+N_AUX = AUX_CAND + 3
 N_FEATURES = 4 * N_WINDOW + 1 + N_LAST
 # ring column of each window channel, and where each "last" channel comes from
 _RING = {c: i for i, c in enumerate(WINDOW_CHANNELS)}
@@ -40,31 +51,12 @@ assert WINDOW_CHANNELS == ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_
     "features.WINDOW_CHANNELS changed: update push_sample to match"
 
 
-class FeatureCoefficients(NamedTuple):
-    """``params`` of ``push_sample`` (``StreamingFeatures.params``).
-
-    Attributes:
-        fs: sampling rate [Hz] (jerk = |Δa| · fs).
-        window_length: L, samples per window (rows of the ring buffer).
-        ref_decay: λ_ref = exp(−1 / (ref_tau_s · fs)), the per-sample weight of the old value in
-            the EMA references of |m| and the dip angle.
-        lp_decay: λ_lp = exp(−1 / (lp_tau_s · fs)), the same for the acc low-pass behind acc_hp.
-        gravity: g [m/s²] (acc_norm_dev = |a| − g).
-    """
-
-    fs: float
-    window_length: int
-    ref_decay: float
-    lp_decay: float
-    gravity: float
-
-
 # inline: called once per sample from the filter loop (``toggling.inloop``), where a call of its own
 # (arguments unpacked, each array reference-counted) took as long as the work: 0.067 -> 0.033 µs/sample
 @njit(cache=True, inline="always")
 def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     """Append one sample's channels (definitions in ``togglecf.features.windows``)."""
-    fs, L, lam_ref, lam_lp, g = params.fs, params.window_length, params.ref_decay, params.lp_decay, params.gravity
+    fs, L, lam_lp, g = params.fs, params.window_length, params.lp_decay, params.gravity
     # the sample is read once into locals: numba cannot prove that gyr/acc/mag do not alias ring or
     # aux, so each read after a store to them would load it again (bench_toggling's in-loop cost)
     gx, gy, gz = gyr[0], gyr[1], gyr[2]
@@ -79,9 +71,10 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     if not math.isfinite(cosang):
         cosang = 0.0  # nan_to_num, as the vectorised version
     dip = math.asin(min(1.0, max(-1.0, -cosang)))
-    if count == 0:  # EMA references start at the first sample: r_{-1} = |m_0|, d_{-1} = δ_0, p_{-1} = a_0
+    if count == 0:  # references start at the first sample: r_{-1} = |m_0|, d_{-1} = δ_0, p_{-1} = a_0
         aux[2] = mn
         aux[3] = dip
+        aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mn, dip, 0.0
         aux[4], aux[5], aux[6] = ax, ay, az
         aux[7], aux[8], aux[9] = ax, ay, az
         jerk = 0.0
@@ -100,15 +93,11 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     hp0, hp1, hp2 = ax - aux[4], ay - aux[5], az - aux[6]
     for j in range(last_src.shape[0]):
         s = last_src[j]
-        aux[10 + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
+        aux[AUX_LAST + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
     # update the references with sample k, only from finite values; a reference that is not
     # finite yet (the first samples were bad) starts at the first finite sample
-    if math.isfinite(mn) and math.isfinite(dip):
-        if math.isfinite(aux[2]) and math.isfinite(aux[3]):
-            aux[2] = lam_ref * aux[2] + (1.0 - lam_ref) * mn
-            aux[3] = lam_ref * aux[3] + (1.0 - lam_ref) * dip
-        else:
-            aux[2], aux[3] = mn, dip
+    aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mag_reference_step(
+        aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2], mn, dip, gn2, params)
     if math.isfinite(an):
         if math.isfinite(aux[4]) and math.isfinite(aux[5]) and math.isfinite(aux[6]):
             aux[4] = lam_lp * aux[4] + (1.0 - lam_lp) * ax
@@ -163,9 +152,8 @@ def window_features(ring, aux, out):
         out[4 * c + 2] = lo[c]
         out[4 * c + 3] = hi[c]
     out[4 * nw] = e / L if math.isfinite(e) else math.nan
-    n_last = aux.shape[0] - 10
-    for j in range(n_last):
-        out[4 * nw + 1 + j] = aux[10 + j]
+    for j in range(N_LAST):
+        out[4 * nw + 1 + j] = aux[AUX_LAST + j]
 
 
 class StreamingFeatures:
@@ -174,11 +162,8 @@ class StreamingFeatures:
     def __init__(self, fs: float, settings: FeatureSettings):
         self.settings = settings
         self.schema = feature_schema(settings)
-        self.L = window_length(fs, settings.window_s)
-        self.params = FeatureCoefficients(fs=float(fs), window_length=int(self.L),
-                                          ref_decay=math.exp(-1.0 / (settings.ref_tau_s * fs)),
-                                          lp_decay=math.exp(-1.0 / (settings.lp_tau_s * fs)),
-                                          gravity=float(self.schema.settings["gravity"]))
+        self.params = feature_coefficients(fs, settings)
+        self.L = self.params.window_length
         self.last_src = _LAST_SRC.copy()
         self.ring = np.zeros((self.L, N_RING))
         self.aux = np.zeros(N_AUX)

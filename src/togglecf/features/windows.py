@@ -11,9 +11,26 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
 * ``acc_x/y/z``, ``acc_norm_dev = |a_k| − g``
 * ``jerk = |a_k − a_{k−1}| · fs`` (0 at ``k = 0``)
 * ``mag_norm_dev = |m_k| − r_{k−1}`` and ``dip_dev = δ_k − d_{k−1}``, with the dip angle
-  ``δ_k = asin(−(a_k·m_k)/(|a_k||m_k|))`` [rad] and causal references ``r``, ``d``: exponential
-  moving averages ``r_k = λ r_{k−1} + (1−λ)|m_k|`` with ``λ = exp(−1/(ref_tau_s·fs))`` and
-  ``r_{−1} = |m_0|`` (likewise ``d`` of ``δ`` with ``d_{−1} = δ_0``)
+  ``δ_k = asin(−(a_k·m_k)/(|a_k||m_k|))`` [rad] and a causal reference ``(r, d)`` of the field's
+  norm and dip that follows only an undisturbed field (``mag_reference_step``, version 3; VQF's
+  magnetic reference logic, Laidig & Seel 2023, eqs. M2-M3, in the sensor frame):
+
+  - sample ``k`` *agrees* with the reference when ``||m_k| − r| < ref_norm_th·r`` and
+    ``|δ_k − d| < ref_dip_th_deg``; then ``r ← r + (1−λ)(|m_k| − r)`` (likewise ``d``), with
+    ``λ = exp(−1/(ref_tau_s·fs))``; a disagreeing sample leaves the reference where it is, so a
+    sustained disturbance stays visible in ``mag_norm_dev``/``dip_dev`` for as long as it lasts;
+  - a *candidate* ``(c_r, c_d)`` follows the field in the same way while the field agrees with it
+    and restarts at ``(|m_k|, δ_k)`` when it does not; it counts the agreeing samples taken while
+    rotating (``|ω_k| ≥ ref_new_min_gyr_dps``); once it has ``round(ref_new_s·fs)`` of them, a
+    sample that disagrees with the reference moves the reference to the candidate (a new
+    undisturbed field, e.g. another room: a disturbance that rotates with the sensor changes
+    norm or dip as it turns and never agrees that long);
+  - the reference starts at the first sample, ``r_{−1} = |m_0|``, ``d_{−1} = δ_0`` (so the
+    first deviations are 0); a non-finite or zero-norm ``|m_k|`` changes nothing, and a
+    reference that is not a finite positive norm yet starts at the first sample that is.
+
+  Version 2 had a plain EMA (``ref_tau_s``) as the reference: within some ``ref_tau_s`` of the
+  start of a sustained disturbance it had followed it and the deviation was gone.
 * ``acc_hp_x/y/z = a_k − p_{k−1}``, ``p`` the EMA of ``a`` with ``lp_tau_s`` (``p_{−1} = a_0``): the
   fast part of the specific force, a proxy for linear acceleration and vibration.
 
@@ -24,7 +41,7 @@ them learns its training site's field and mistakes another site's undisturbed fi
 disturbance (issue 12). A deviation from the reference means the same anywhere.
 
 Non-finite input samples: a window that holds a non-finite value of a channel gives NaN
-statistics of that channel (missing values for the trees); the EMA references hold over bad
+statistics of that channel (missing values for the trees); the references hold over bad
 samples and start at the first finite one.
 
 Window statistics over ``[k−L+1, k]`` (``WINDOW_CHANNELS``): ``mean``, ``std`` (population,
@@ -38,8 +55,10 @@ same values up to floating-point rounding (~1e-9 relative; min/max exactly).
 from __future__ import annotations
 
 import hashlib
+import math
 import json
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -49,11 +68,12 @@ from scipy.signal import lfilter
 from togglecf.core.io import check_keys
 from togglecf.data.broad import GRAVITY
 
-__all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureSchema", "SchemaMismatchError", "feature_schema",
+__all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureCoefficients", "FeatureSchema", "SchemaMismatchError",
+           "feature_coefficients", "feature_schema", "mag_reference_step",
            "window_end_indices", "window_length", "hop_length", "per_sample_channels", "compute_features",
            "trial_features", "WINDOW_CHANNELS", "LAST_CHANNELS"]
 
-FEATURE_VERSION = 2
+FEATURE_VERSION = 3
 WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
                    "jerk", "mag_norm_dev", "dip_dev")
 STATS = ("mean", "std", "min", "max")
@@ -68,22 +88,81 @@ class SchemaMismatchError(ValueError):
 
 @dataclass(frozen=True)
 class FeatureSettings:
-    """Window settings [s]: ``window_s`` window length, ``hop_s`` spacing of the window ends,
-    ``ref_tau_s`` time constant of the |m| / dip references, ``lp_tau_s`` of the acc low-pass."""
+    """Feature settings in physical units (module docstring).
+
+    Attributes:
+        window_s: window length [s].
+        hop_s: spacing of the window ends [s].
+        ref_tau_s: time constant [s] with which the field reference (and its candidate) follow an
+            agreeing field.
+        lp_tau_s: time constant [s] of the acc low-pass behind ``acc_hp``.
+        ref_norm_th: largest deviation of |m| from the reference, relative to it, for a sample to
+            agree with it (VQF's ``magNormTh``). Default 0.1.
+        ref_dip_th_deg: largest deviation of the dip angle [°] (VQF's ``magDipTh``). Default 10.
+        ref_new_s: rotating time [s] a new field must agree with itself before it becomes the
+            reference (VQF's ``magNewTime``). Default 20.
+        ref_new_min_gyr_dps: |ω| [°/s] from which a sample counts as rotating for ``ref_new_s``
+            (VQF's ``magNewMinGyr``). Default 20.
+    """
 
     window_s: float = 0.2
     hop_s: float = 0.05
     ref_tau_s: float = 10.0
     lp_tau_s: float = 0.5
+    ref_norm_th: float = 0.1
+    ref_dip_th_deg: float = 10.0
+    ref_new_s: float = 20.0
+    ref_new_min_gyr_dps: float = 20.0
 
     def __post_init__(self):
         for k, v in asdict(self).items():
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
-                raise ValueError(f"FeatureSettings.{k} must be a positive number of seconds, got {v!r}")
+                raise ValueError(f"FeatureSettings.{k} must be a positive number (units: see FeatureSettings), "
+                                 f"got {v!r}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureSettings":
         return cls(**{k: float(v) for k, v in check_keys(cls, d, "feature").items()})
+
+
+class FeatureCoefficients(NamedTuple):
+    """The per-sample constants of the features at one rate (``feature_coefficients``): what the
+    numba kernels (``per_sample_channels``, ``streaming.push_sample``) and the C export read.
+
+    Attributes:
+        fs: sampling rate [Hz] (jerk = |Δa| · fs).
+        window_length: L, samples per window (rows of the streaming ring buffer).
+        ref_decay: λ_ref = exp(−1 / (ref_tau_s · fs)), the per-sample weight of the old value in
+            the field reference and its candidate (the gain of an agreeing sample is 1 − λ_ref).
+        lp_decay: λ_lp = exp(−1 / (lp_tau_s · fs)), the same for the acc low-pass behind acc_hp.
+        gravity: g [m/s²] (acc_norm_dev = |a| − g).
+        ref_norm_th: ``FeatureSettings.ref_norm_th`` (relative).
+        ref_dip_th: ``ref_dip_th_deg`` in rad.
+        ref_new_samples: round(ref_new_s · fs) (at least 1), the rotating samples after which a
+            candidate becomes the reference.
+        ref_new_min_gyr_sq: ``ref_new_min_gyr_dps`` in rad/s, squared [(rad/s)²].
+    """
+
+    fs: float
+    window_length: int
+    ref_decay: float
+    lp_decay: float
+    gravity: float
+    ref_norm_th: float
+    ref_dip_th: float
+    ref_new_samples: int
+    ref_new_min_gyr_sq: float
+
+
+def feature_coefficients(fs: float, settings: "FeatureSettings") -> FeatureCoefficients:
+    """``FeatureSettings`` (physical units) to the per-sample constants at ``fs`` [Hz]."""
+    return FeatureCoefficients(fs=float(fs), window_length=int(window_length(fs, settings.window_s)),
+                               ref_decay=math.exp(-1.0 / (settings.ref_tau_s * fs)),
+                               lp_decay=math.exp(-1.0 / (settings.lp_tau_s * fs)), gravity=float(GRAVITY),
+                               ref_norm_th=float(settings.ref_norm_th),
+                               ref_dip_th=math.radians(settings.ref_dip_th_deg),
+                               ref_new_samples=max(1, int(round(settings.ref_new_s * fs))),
+                               ref_new_min_gyr_sq=math.radians(settings.ref_new_min_gyr_dps) ** 2)
 
 
 @dataclass(frozen=True)
@@ -201,6 +280,50 @@ def _ema_lagged_holding(x, lam, out):
                 r[j] = (1.0 - lam) * x[k, j] + lam * r[j] if started else x[k, j]
 
 
+# inline: called once per sample from the filter loop (``streaming.push_sample``), as push_sample itself
+@njit(cache=True, inline="always")
+def mag_reference_step(r, d, cand_r, cand_d, cand_n, mn, dip, gyr_sq, params):
+    """The field reference after sample k (module docstring): ``(r, d, cand_r, cand_d, cand_n)``
+    [µT, rad, µT, rad, samples] updated with |m_k| = ``mn`` [µT], δ_k = ``dip`` [rad] and |ω_k|² =
+    ``gyr_sq`` [(rad/s)²]; ``params`` a ``FeatureCoefficients``. The same float64 operations in
+    the vectorised and streaming features; ``tcf_features.c`` ports it to float32."""
+    if not (math.isfinite(mn) and math.isfinite(dip) and mn > 0.0):
+        return r, d, cand_r, cand_d, cand_n  # a bad or zero-norm sample says nothing about the field
+    if not (math.isfinite(r) and math.isfinite(d) and r > 0.0):
+        return mn, dip, mn, dip, 0.0  # no reference yet: start here
+    k = 1.0 - params.ref_decay
+    agree = abs(mn - r) < params.ref_norm_th * r and abs(dip - d) < params.ref_dip_th  # (M2)
+    if agree:
+        r += k * (mn - r)
+        d += k * (dip - d)
+    if abs(mn - cand_r) < params.ref_norm_th * cand_r and abs(dip - cand_d) < params.ref_dip_th:  # (M3)
+        if gyr_sq >= params.ref_new_min_gyr_sq and cand_n < params.ref_new_samples:
+            cand_n += 1.0
+        cand_r += k * (mn - cand_r)
+        cand_d += k * (dip - cand_d)
+        if not agree and cand_n >= params.ref_new_samples:  # a new field: the candidate becomes the reference
+            r, d = cand_r, cand_d
+    else:
+        cand_r, cand_d, cand_n = mn, dip, 0.0
+    return r, d, cand_r, cand_d, cand_n
+
+
+@njit(cache=True)
+def _mag_reference_lagged(mn, dip, gyr_sq, params):
+    """``(r_{k−1}, d_{k−1})`` for every sample k, ``(N, 2)``: ``mag_reference_step`` over the trial."""
+    n = mn.shape[0]
+    out = np.empty((n, 2))
+    if n == 0:
+        return out
+    r, d, cand_r, cand_d, cand_n = mn[0], dip[0], mn[0], dip[0], 0.0  # r_{−1} = |m_0|, d_{−1} = δ_0
+    for i in range(n):
+        out[i, 0] = r
+        out[i, 1] = d
+        r, d, cand_r, cand_d, cand_n = mag_reference_step(r, d, cand_r, cand_d, cand_n, mn[i], dip[i], gyr_sq[i],
+                                                          params)
+    return out
+
+
 def per_sample_channels(gyr, acc, mag, fs: float, settings: FeatureSettings) -> dict:
     """The per-sample channels of the module docstring, each ``(N,)`` float64."""
     gyr, acc, mag = (np.ascontiguousarray(x, dtype=np.float64) for x in (gyr, acc, mag))
@@ -221,12 +344,11 @@ def per_sample_channels(gyr, acc, mag, fs: float, settings: FeatureSettings) -> 
     with np.errstate(invalid="ignore", divide="ignore"):
         cosang = np.einsum("ij,ij->i", acc, mag) / (an * mn)
     dip = np.arcsin(np.clip(-np.nan_to_num(cosang), -1.0, 1.0))
-    lam_ref = float(np.exp(-1.0 / (settings.ref_tau_s * fs)))
-    ref = _ema_lagged(np.stack([mn, dip], axis=1), lam_ref)
+    coef = feature_coefficients(fs, settings)
+    ref = _mag_reference_lagged(mn, dip, gn2, coef)
     ch["mag_norm_dev"] = mn - ref[:, 0]
     ch["dip_dev"] = dip - ref[:, 1]
-    lam_lp = float(np.exp(-1.0 / (settings.lp_tau_s * fs)))
-    hp = acc - _ema_lagged(acc, lam_lp)
+    hp = acc - _ema_lagged(acc, coef.lp_decay)
     for i, ax in enumerate("xyz"):
         ch[f"acc_hp_{ax}"] = hp[:, i]
     return ch

@@ -8,6 +8,7 @@
  */
 #include <math.h>
 #include <stddef.h>
+#include <string.h>
 #include "tcf_features.h"
 
 #if defined(__FAST_MATH__)
@@ -38,34 +39,49 @@ static void ema_update(float *hi, float *lo, float c, float x) {
 /* The field reference after sample k (togglecf.features.windows.mag_reference_step; VQF's
    eqs. M2-M3 in the sensor frame): the reference follows |m| and the dip only while they agree
    with it; a candidate that has agreed with itself for TCF_REF_NEW_N rotating samples replaces a
-   reference the field disagrees with. dm, dd: the deviations from r_{k-1}, d_{k-1} (row[9], row[10]). */
-static void mag_reference_update(tcf_features_t *f, float mn, float dip, float dm, float dd, float gn2) {
-  int agree;
-  float cm, cd;
-  if (!(isfinite(mn) && isfinite(dip) && mn > 0.0f)) return;  /* a bad or zero-norm sample says nothing */
-  if (!(isfinite(f->ref_mag) && isfinite(f->ref_dip) && f->ref_mag > 0.0f)) {  /* no reference yet: start here */
-    f->ref_mag = mn; f->ref_dip = dip; f->ref_mag_lo = 0.0f; f->ref_dip_lo = 0.0f;
-    f->cand_mag = mn; f->cand_dip = dip; f->cand_mag_lo = 0.0f; f->cand_dip_lo = 0.0f;
+   reference the field disagrees with. The helpers are shared by reference and candidate (code
+   size: every float operation is a call on a soft-float target). */
+#if defined(__GNUC__)
+#define TCF_NOINLINE __attribute__((noinline))
+#else
+#define TCF_NOINLINE
+#endif
+
+static void field_set(tcf_field_t *r, float mn, float dip) {
+  r->mag = mn; r->dip = dip; r->mag_lo = 0.0f; r->dip_lo = 0.0f;
+}
+
+static TCF_NOINLINE int field_agrees(const tcf_field_t *r, float mn, float dip) {
+  return fabsf((mn - r->mag) - r->mag_lo) < TCF_REF_NORM_TH * r->mag && fabsf((dip - r->dip) - r->dip_lo) < TCF_REF_DIP_TH;
+}
+
+static TCF_NOINLINE void field_follow(tcf_field_t *r, float mn, float dip) {
+  ema_update(&r->mag, &r->mag_lo, TCF_LAM_REF_C, mn);
+  ema_update(&r->dip, &r->dip_lo, TCF_LAM_REF_C, dip);
+}
+
+/* before sample k's deviations: with no reference yet and a usable sample, reference and candidate
+   start at it (mag_reference_start) */
+static void mag_reference_start(tcf_features_t *f, float mn, float dip) {
+  if (mn > 0.0f && isfinite(mn) && !(f->ref.mag > 0.0f && isfinite(f->ref.mag))) {
+    field_set(&f->ref, mn, dip);
+    field_set(&f->cand, mn, dip);
     f->cand_n = 0u;
-    return;
   }
-  agree = fabsf(dm) < TCF_REF_NORM_TH * f->ref_mag && fabsf(dd) < TCF_REF_DIP_TH;  /* (M2) */
-  if (agree) {
-    ema_update(&f->ref_mag, &f->ref_mag_lo, TCF_LAM_REF_C, mn);
-    ema_update(&f->ref_dip, &f->ref_dip_lo, TCF_LAM_REF_C, dip);
-  }
-  cm = (mn - f->cand_mag) - f->cand_mag_lo;
-  cd = (dip - f->cand_dip) - f->cand_dip_lo;
-  if (fabsf(cm) < TCF_REF_NORM_TH * f->cand_mag && fabsf(cd) < TCF_REF_DIP_TH) {  /* (M3) */
+}
+
+/* after them (mag_reference_step; dip is finite by construction) */
+static void mag_reference_update(tcf_features_t *f, float mn, float dip, float gn2) {
+  int agree;
+  if (!(mn > 0.0f && isfinite(mn))) return;  /* a bad or zero-norm sample says nothing about the field */
+  agree = field_agrees(&f->ref, mn, dip);  /* (M2) */
+  if (agree) field_follow(&f->ref, mn, dip);
+  if (field_agrees(&f->cand, mn, dip)) {  /* (M3) */
     if (gn2 >= TCF_REF_MIN_GYR_SQ && f->cand_n < TCF_REF_NEW_N) f->cand_n++;
-    ema_update(&f->cand_mag, &f->cand_mag_lo, TCF_LAM_REF_C, mn);
-    ema_update(&f->cand_dip, &f->cand_dip_lo, TCF_LAM_REF_C, dip);
-    if (!agree && f->cand_n >= TCF_REF_NEW_N) {  /* a new field: the candidate becomes the reference */
-      f->ref_mag = f->cand_mag; f->ref_mag_lo = f->cand_mag_lo;
-      f->ref_dip = f->cand_dip; f->ref_dip_lo = f->cand_dip_lo;
-    }
+    field_follow(&f->cand, mn, dip);
+    if (!agree && f->cand_n >= TCF_REF_NEW_N) f->ref = f->cand;  /* a new field becomes the reference */
   } else {
-    f->cand_mag = mn; f->cand_dip = dip; f->cand_mag_lo = 0.0f; f->cand_dip_lo = 0.0f;
+    field_set(&f->cand, mn, dip);
     f->cand_n = 0u;
   }
 }
@@ -86,16 +102,8 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   c = -cosang;
   c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
   dip = asinf(c);
-  if (f->n_filled == 0) {  /* references start at the first sample: r_{-1} = |m_0|, d_{-1} = dip_0, p_{-1} = a_0 */
-    f->ref_mag = mn;
-    f->ref_dip = dip;
-    f->ref_mag_lo = 0.0f;
-    f->ref_dip_lo = 0.0f;
-    f->cand_mag = mn;
-    f->cand_dip = dip;
-    f->cand_mag_lo = 0.0f;
-    f->cand_dip_lo = 0.0f;
-    f->cand_n = 0u;
+  if (f->n_filled == 0) {  /* the low-pass starts at the first sample, p_{-1} = a_0; the field reference at */
+    f->ref.mag = f->ref.dip = NAN;  /* the first usable one (NaN deviations before it) */
     for (i = 0; i < 3; ++i) {
       f->acc_lp[i] = acc[i];
       f->acc_lp_lo[i] = 0.0f;
@@ -106,13 +114,14 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
     float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
     jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
   }
+  mag_reference_start(f, mn, dip);
   row[0] = gyr[0]; row[1] = gyr[1]; row[2] = gyr[2];
   row[3] = sqrtf(gn2);
   row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
   row[7] = an - TCF_GRAVITY;
   row[8] = jerk;
-  row[9] = (mn - f->ref_mag) - f->ref_mag_lo;  /* uses r_{k-1} */
-  row[10] = (dip - f->ref_dip) - f->ref_dip_lo;
+  row[9] = (mn - f->ref.mag) - f->ref.mag_lo;  /* uses r_{k-1} */
+  row[10] = (dip - f->ref.dip) - f->ref.dip_lo;
   row[11] = gn2;
   /* LAST_CHANNELS: gyr_norm, acc_x/y/z, acc_norm_dev, mag_norm_dev, dip_dev, acc_hp_x/y/z */
   f->last[0] = row[3];
@@ -121,9 +130,8 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   f->last[5] = row[9];
   f->last[6] = row[10];
   for (i = 0; i < 3; ++i) f->last[7 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
-  /* update the references with sample k, only from finite values; a reference that is not
-     finite yet (the first samples were bad) starts at the first finite sample */
-  mag_reference_update(f, mn, dip, row[9], row[10], gn2);
+  /* update the field reference with sample k (only from usable samples) */
+  mag_reference_update(f, mn, dip, gn2);
   if (isfinite(an)) {
     if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
       for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
@@ -201,27 +209,8 @@ static int tcf_out_of_range(const float feat[TCF_N_FEATURES]) {
 /* ------------------------------------------------------------------ API */
 
 void tcf_features_init(tcf_features_t *f) {
-  int i, j;
-  for (i = 0; i < TCF_WINDOW; ++i)
-    for (j = 0; j < TCF_RING_COLS; ++j) f->ring[i][j] = 0.0f;
-  f->ref_mag = 0.0f;
-  f->ref_dip = 0.0f;
-  f->ref_mag_lo = 0.0f;
-  f->ref_dip_lo = 0.0f;
-  f->cand_mag = 0.0f;
-  f->cand_mag_lo = 0.0f;
-  f->cand_dip = 0.0f;
-  f->cand_dip_lo = 0.0f;
-  f->cand_n = 0u;
-  for (j = 0; j < 3; ++j) {
-    f->acc_lp[j] = 0.0f;
-    f->acc_lp_lo[j] = 0.0f;
-    f->prev_acc[j] = 0.0f;
-  }
-  for (j = 0; j < TCF_N_LAST; ++j) f->last[j] = 0.0f;
-  f->n_filled = 0u;
-  f->pos = 0u;
-  f->hop_phase = 0u;
+  int j;
+  memset(f, 0, sizeof *f);  /* empty window, references and counters (all-zero bits are 0.0f) */
   for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
 }
 

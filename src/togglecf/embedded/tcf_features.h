@@ -53,12 +53,16 @@ extern "C" {
 #define TCF_MAX_OUT 0
 #endif
 
+/* a field's |m| [uT] and dip angle [rad], each as hi + lo (compensated EMA, see tcf_features.c) */
+typedef struct tcf_field {
+  float mag, mag_lo;
+  float dip, dip_lo;
+} tcf_field_t;
+
 typedef struct tcf_features {
   float ring[TCF_WINDOW][TCF_RING_COLS];
-  float ref_mag, ref_mag_lo;  /* reference r_{k-1} of |m| [uT], as hi + lo (compensated, see tcf_features.c) */
-  float ref_dip, ref_dip_lo;  /* reference d_{k-1} of the dip angle [rad], hi + lo */
-  float cand_mag, cand_mag_lo;  /* candidate new field: |m| [uT], hi + lo */
-  float cand_dip, cand_dip_lo;  /* and its dip [rad], hi + lo */
+  tcf_field_t ref;     /* reference (r_{k-1}, d_{k-1}) of the undisturbed field */
+  tcf_field_t cand;    /* candidate new field */
   uint32_t cand_n;     /* rotating samples the candidate has agreed with itself (saturates at TCF_REF_NEW_N) */
   float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
   float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */

@@ -29,6 +29,7 @@ from togglecf.features.windows import (
     FeatureSettings,
     feature_coefficients,
     feature_schema,
+    mag_reference_start,
     mag_reference_step,
 )
 
@@ -71,16 +72,17 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     if not math.isfinite(cosang):
         cosang = 0.0  # nan_to_num, as the vectorised version
     dip = math.asin(min(1.0, max(-1.0, -cosang)))
-    if count == 0:  # references start at the first sample: r_{-1} = |m_0|, d_{-1} = δ_0, p_{-1} = a_0
-        aux[2] = mn
-        aux[3] = dip
-        aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mn, dip, 0.0
+    if count == 0:  # the low-pass starts at the first sample, p_{-1} = a_0; the field reference at the first
+        aux[2], aux[3] = math.nan, math.nan  # usable one (below; NaN deviations before it)
         aux[4], aux[5], aux[6] = ax, ay, az
         aux[7], aux[8], aux[9] = ax, ay, az
         jerk = 0.0
     else:
         dx, dy, dz = ax - aux[7], ay - aux[8], az - aux[9]
         jerk = math.sqrt(dx * dx + dy * dy + dz * dz) * fs
+    # the field reference starts at the first usable sample, before its deviations
+    aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mag_reference_start(
+        aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2], mn, dip)
     row = ring[pos]
     row[0], row[1], row[2] = gx, gy, gz
     row[3] = math.sqrt(gn2)
@@ -94,8 +96,7 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     for j in range(last_src.shape[0]):
         s = last_src[j]
         aux[AUX_LAST + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
-    # update the references with sample k, only from finite values; a reference that is not
-    # finite yet (the first samples were bad) starts at the first finite sample
+    # update the field reference with sample k (only from usable samples)
     aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mag_reference_step(
         aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2], mn, dip, gn2, params)
     if math.isfinite(an):

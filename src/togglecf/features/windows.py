@@ -25,9 +25,10 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
     sample that disagrees with the reference moves the reference to the candidate (a new
     undisturbed field, e.g. another room: a disturbance that rotates with the sensor changes
     norm or dip as it turns and never agrees that long);
-  - the reference starts at the first sample, ``r_{−1} = |m_0|``, ``d_{−1} = δ_0`` (so the
-    first deviations are 0); a non-finite or zero-norm ``|m_k|`` changes nothing, and a
-    reference that is not a finite positive norm yet starts at the first sample that is.
+  - the reference (and the candidate) start at the first usable sample, ``|m_k|`` finite and
+    positive, before its deviations are taken (so they are 0: with a good first sample
+    ``r_{−1} = |m_0|``, ``d_{−1} = δ_0``); the deviations before it are NaN, and an unusable
+    sample later changes nothing.
 
   Version 2 had a plain EMA (``ref_tau_s``) as the reference: within some ``ref_tau_s`` of the
   start of a sustained disturbance it had followed it and the deviation was gone.
@@ -69,7 +70,7 @@ from togglecf.core.io import check_keys
 from togglecf.data.broad import GRAVITY
 
 __all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureCoefficients", "FeatureSchema", "SchemaMismatchError",
-           "feature_coefficients", "feature_schema", "mag_reference_step",
+           "feature_coefficients", "feature_schema", "mag_reference_start", "mag_reference_step",
            "window_end_indices", "window_length", "hop_length", "per_sample_channels", "compute_features",
            "trial_features", "WINDOW_CHANNELS", "LAST_CHANNELS"]
 
@@ -282,15 +283,23 @@ def _ema_lagged_holding(x, lam, out):
 
 # inline: called once per sample from the filter loop (``streaming.push_sample``), as push_sample itself
 @njit(cache=True, inline="always")
+def mag_reference_start(r, d, cand_r, cand_d, cand_n, mn, dip):
+    """Before sample k's deviations: with no reference yet (``r`` not a finite positive norm) and
+    a usable sample (|m_k| = ``mn`` finite and > 0), reference and candidate start at it."""
+    if math.isfinite(mn) and mn > 0.0 and not (math.isfinite(r) and r > 0.0):
+        return mn, dip, mn, dip, 0.0
+    return r, d, cand_r, cand_d, cand_n
+
+
+@njit(cache=True, inline="always")
 def mag_reference_step(r, d, cand_r, cand_d, cand_n, mn, dip, gyr_sq, params):
     """The field reference after sample k (module docstring): ``(r, d, cand_r, cand_d, cand_n)``
-    [µT, rad, µT, rad, samples] updated with |m_k| = ``mn`` [µT], δ_k = ``dip`` [rad] and |ω_k|² =
-    ``gyr_sq`` [(rad/s)²]; ``params`` a ``FeatureCoefficients``. The same float64 operations in
-    the vectorised and streaming features; ``tcf_features.c`` ports it to float32."""
-    if not (math.isfinite(mn) and math.isfinite(dip) and mn > 0.0):
+    [µT, rad, µT, rad, samples] updated with |m_k| = ``mn`` [µT], δ_k = ``dip`` [rad] (finite by
+    construction) and |ω_k|² = ``gyr_sq`` [(rad/s)²]; ``params`` a ``FeatureCoefficients``. After
+    ``mag_reference_start`` of the same sample. The same float64 operations in the vectorised and
+    streaming features; ``tcf_features.c`` ports it to float32."""
+    if not (math.isfinite(mn) and mn > 0.0):
         return r, d, cand_r, cand_d, cand_n  # a bad or zero-norm sample says nothing about the field
-    if not (math.isfinite(r) and math.isfinite(d) and r > 0.0):
-        return mn, dip, mn, dip, 0.0  # no reference yet: start here
     k = 1.0 - params.ref_decay
     agree = abs(mn - r) < params.ref_norm_th * r and abs(dip - d) < params.ref_dip_th  # (M2)
     if agree:
@@ -310,13 +319,12 @@ def mag_reference_step(r, d, cand_r, cand_d, cand_n, mn, dip, gyr_sq, params):
 
 @njit(cache=True)
 def _mag_reference_lagged(mn, dip, gyr_sq, params):
-    """``(r_{k−1}, d_{k−1})`` for every sample k, ``(N, 2)``: ``mag_reference_step`` over the trial."""
+    """``(r_{k−1}, d_{k−1})`` for every sample k, ``(N, 2)`` (NaN before the first usable sample)."""
     n = mn.shape[0]
     out = np.empty((n, 2))
-    if n == 0:
-        return out
-    r, d, cand_r, cand_d, cand_n = mn[0], dip[0], mn[0], dip[0], 0.0  # r_{−1} = |m_0|, d_{−1} = δ_0
+    r, d, cand_r, cand_d, cand_n = math.nan, math.nan, math.nan, math.nan, 0.0
     for i in range(n):
+        r, d, cand_r, cand_d, cand_n = mag_reference_start(r, d, cand_r, cand_d, cand_n, mn[i], dip[i])
         out[i, 0] = r
         out[i, 1] = d
         r, d, cand_r, cand_d, cand_n = mag_reference_step(r, d, cand_r, cand_d, cand_n, mn[i], dip[i], gyr_sq[i],

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
 from dataclasses import asdict, fields
 from pathlib import Path
 
@@ -173,7 +174,7 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
     ``use_mag``, ``settings``, ``state_bytes`` (sizeof(tcf_vqf_t), gcc) and, with ``sizes``,
     ``object_sizes`` {host, riscv, arm} of ``VQF_SOURCES`` together (text + data + bss summed over
     the two objects; -Os; None where a cross compiler is missing), ``stack`` {riscv, arm} of the
-    ``tcf_vqf_update`` call chain (all in ``tcf_vqf.c``), and the linked
+    ``tcf_vqf_update`` call chain (through both sources, compiled as one unit), and the linked
     program sizes ``linked_riscv`` (picolibc) / ``linked_arm`` (newlib-nano)."""
     if not (isinstance(fs, (int, float, np.floating)) and math.isfinite(fs) and fs > 0):
         raise ValueError(f"fs must be a positive sampling rate in Hz, got {fs!r}")
@@ -198,9 +199,11 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
         arm = [arm_object_size(f, [out_dir]) for f in srcs]
         report["object_sizes"] = {"host": _sum_sizes([per[str(f)]["host"] for f in srcs]),
                                   "riscv": _sum_sizes([per[str(f)]["riscv"] for f in srcs]), "arm": _sum_sizes(arm)}
-        src = srcs[0]
-        report["stack"] = {"riscv": _riscv_stack_usage(src, [out_dir], "tcf_vqf_update"),
-                           "arm": arm_stack_usage(src, [out_dir], "tcf_vqf_update")}
+        with tempfile.TemporaryDirectory() as tmp:  # one translation unit: the chain crosses the two files
+            unit = Path(tmp) / "tcf_vqf_unit.c"
+            unit.write_text("".join(f'#include "{f.resolve()}"\n' for f in srcs), encoding="utf-8")
+            report["stack"] = {"riscv": _riscv_stack_usage(unit, [out_dir], "tcf_vqf_update"),
+                               "arm": arm_stack_usage(unit, [out_dir], "tcf_vqf_update")}
         report["linked_riscv"] = link_riscv(srcs, [out_dir], _LINK_MAIN)
         report["linked_arm"] = link_arm([out_dir / f for f in VQF_SOURCES], [out_dir], _LINK_MAIN)
     atomic_write_json(out_dir / "vqf_report.json", report)

@@ -51,8 +51,9 @@ static void field_set(tcf_field_t *r, float mn, float dip) {
   r->mag = mn; r->dip = dip; r->mag_lo = 0.0f; r->dip_lo = 0.0f;
 }
 
+/* the gate against hi alone: lo (< 1 ulp of hi) cannot matter at a 10 % / 10 degree threshold */
 static TCF_NOINLINE int field_agrees(const tcf_field_t *r, float mn, float dip) {
-  return fabsf((mn - r->mag) - r->mag_lo) < TCF_REF_NORM_TH * r->mag && fabsf((dip - r->dip) - r->dip_lo) < TCF_REF_DIP_TH;
+  return fabsf(mn - r->mag) < TCF_REF_NORM_TH * r->mag && fabsf(dip - r->dip) < TCF_REF_DIP_TH;
 }
 
 static TCF_NOINLINE void field_follow(tcf_field_t *r, float mn, float dip) {
@@ -60,10 +61,11 @@ static TCF_NOINLINE void field_follow(tcf_field_t *r, float mn, float dip) {
   ema_update(&r->dip, &r->dip_lo, TCF_LAM_REF_C, dip);
 }
 
-/* before sample k's deviations: with no reference yet and a usable sample, reference and candidate
-   start at it (mag_reference_start) */
+/* before sample k's deviations: with no reference yet (NaN, or 0 after tcf_features_init; a
+   reference is otherwise a positive norm) and a usable sample, reference and candidate start at
+   it (mag_reference_start) */
 static void mag_reference_start(tcf_features_t *f, float mn, float dip) {
-  if (mn > 0.0f && isfinite(mn) && !(f->ref.mag > 0.0f && isfinite(f->ref.mag))) {
+  if (!(f->ref.mag > 0.0f)) {
     field_set(&f->ref, mn, dip);
     field_set(&f->cand, mn, dip);
     f->cand_n = 0u;
@@ -72,9 +74,7 @@ static void mag_reference_start(tcf_features_t *f, float mn, float dip) {
 
 /* after them (mag_reference_step; dip is finite by construction) */
 static void mag_reference_update(tcf_features_t *f, float mn, float dip, float gn2) {
-  int agree;
-  if (!(mn > 0.0f && isfinite(mn))) return;  /* a bad or zero-norm sample says nothing about the field */
-  agree = field_agrees(&f->ref, mn, dip);  /* (M2) */
+  int agree = field_agrees(&f->ref, mn, dip);  /* (M2) */
   if (agree) field_follow(&f->ref, mn, dip);
   if (field_agrees(&f->cand, mn, dip)) {  /* (M3) */
     if (gn2 >= TCF_REF_MIN_GYR_SQ && f->cand_n < TCF_REF_NEW_N) f->cand_n++;
@@ -97,13 +97,12 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   float mn = sqrtf(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]);
   float cosang = an * mn > 0.0f ? (acc[0] * mag[0] + acc[1] * mag[1] + acc[2] * mag[2]) / (an * mn) : 0.0f;
   float dip, jerk, c;
-  int i;
+  int i, usable;
   if (!isfinite(cosang)) cosang = 0.0f;  /* nan_to_num, as the vectorised version */
   c = -cosang;
   c = c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
   dip = asinf(c);
-  if (f->n_filled == 0) {  /* the low-pass starts at the first sample, p_{-1} = a_0; the field reference at */
-    f->ref.mag = f->ref.dip = NAN;  /* the first usable one (NaN deviations before it) */
+  if (f->n_filled == 0) {  /* the low-pass starts at the first sample, p_{-1} = a_0 */
     for (i = 0; i < 3; ++i) {
       f->acc_lp[i] = acc[i];
       f->acc_lp_lo[i] = 0.0f;
@@ -114,7 +113,8 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
     float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
     jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
   }
-  mag_reference_start(f, mn, dip);
+  usable = mn > 0.0f && isfinite(mn);  /* a bad or zero-norm sample says nothing about the field */
+  if (usable) mag_reference_start(f, mn, dip);
   row[0] = gyr[0]; row[1] = gyr[1]; row[2] = gyr[2];
   row[3] = sqrtf(gn2);
   row[4] = acc[0]; row[5] = acc[1]; row[6] = acc[2];
@@ -131,7 +131,7 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   f->last[6] = row[10];
   for (i = 0; i < 3; ++i) f->last[7 + i] = (acc[i] - f->acc_lp[i]) - f->acc_lp_lo[i];  /* uses p_{k-1} */
   /* update the field reference with sample k (only from usable samples) */
-  mag_reference_update(f, mn, dip, gn2);
+  if (usable) mag_reference_update(f, mn, dip, gn2);
   if (isfinite(an)) {
     if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
       for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
@@ -210,7 +210,8 @@ static int tcf_out_of_range(const float feat[TCF_N_FEATURES]) {
 
 void tcf_features_init(tcf_features_t *f) {
   int j;
-  memset(f, 0, sizeof *f);  /* empty window, references and counters (all-zero bits are 0.0f) */
+  memset(f, 0, sizeof *f);  /* empty window, low-pass and counters (all-zero bits are 0.0f) */
+  f->ref.mag = f->ref.dip = NAN;  /* no field reference: it starts at the first usable sample (NaN deviations before) */
   for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
 }
 

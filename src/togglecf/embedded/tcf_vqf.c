@@ -303,16 +303,6 @@ void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float si
 
 /* ------------------------------------------------------------------ the step */
 
-void tcf_vqf_update(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
-  tcf_vqf_update_dt(f, gyr, acc, mag, f->c.ts);
-}
-
-void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
-  tcf_vqf_mod_t m;
-  tcf_vqf_base_mod(f, &m);
-  tcf_vqf_update_mod(f, gyr, acc, mag, dt, &m);
-}
-
 /* core_update: vqf_core_step with the modulated coefficients *m */
 void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
                         const tcf_vqf_mod_t *m) {

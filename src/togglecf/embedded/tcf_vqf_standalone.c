@@ -1,7 +1,9 @@
 /* tcf_vqf_standalone.c: the parts of the VQF core API (tcf_vqf.h) that only a standalone use needs:
- * default parameters and the bias and heading-offset getters. A separate file so that a firmware
- * build of the learned filter (tcf_vqf_toggling.c: it sets the parameters from its generated config
- * and reads the orientation, rest and disturbance flags) compiles only tcf_vqf.c.
+ * default parameters, the update at the settings' own coefficients (tcf_vqf_update,
+ * tcf_vqf_update_dt) and the bias and heading-offset getters. A separate file so that a firmware
+ * build of the learned filter (tcf_vqf_toggling.c: it sets the parameters from its generated config,
+ * updates with modulated coefficients and reads the orientation, rest and disturbance flags)
+ * compiles only tcf_vqf.c.
  */
 #include <math.h>
 #include "tcf_vqf.h"
@@ -46,3 +48,13 @@ float tcf_vqf_bias(const tcf_vqf_t *f, float b[3]) {
 }
 
 float tcf_vqf_delta(const tcf_vqf_t *f) { return f->delta; }
+
+void tcf_vqf_update(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
+  tcf_vqf_update_dt(f, gyr, acc, mag, f->c.ts);
+}
+
+void tcf_vqf_update_dt(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
+  tcf_vqf_mod_t m;
+  tcf_vqf_base_mod(f, &m);
+  tcf_vqf_update_mod(f, gyr, acc, mag, dt, &m);
+}

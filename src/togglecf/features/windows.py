@@ -284,9 +284,10 @@ def _ema_lagged_holding(x, lam, out):
 # inline: called once per sample from the filter loop (``streaming.push_sample``), as push_sample itself
 @njit(cache=True, inline="always")
 def mag_reference_start(r, d, cand_r, cand_d, cand_n, mn, dip):
-    """Before sample k's deviations: with no reference yet (``r`` not a finite positive norm) and
-    a usable sample (|m_k| = ``mn`` finite and > 0), reference and candidate start at it."""
-    if math.isfinite(mn) and mn > 0.0 and not (math.isfinite(r) and r > 0.0):
+    """Before sample k's deviations: with no reference yet (``r`` NaN or 0; a reference is
+    otherwise a positive norm) and a usable sample (|m_k| = ``mn`` finite and > 0), reference and
+    candidate start at it."""
+    if math.isfinite(mn) and mn > 0.0 and not r > 0.0:
         return mn, dip, mn, dip, 0.0
     return r, d, cand_r, cand_d, cand_n
 

@@ -110,8 +110,8 @@ def train_within_budget(args) -> tuple:
                              f"({key}, {DEFAULT_EXPORT_POINT.key}) and no sweep is in {sweep_dir}: add --full-sweep "
                              "to search smaller points (about 30 minutes on 2 cores)")
         print(f"no pruning sweep in {sweep_dir}: using the default point {point.key} (10 trees x depth 4, all "
-              f"features; ~{need} bytes {key} in the sweep of models/default); --full-sweep searches for this model",
-              file=sys.stderr)
+              f"features; ~{need} bytes {key} in the sweep of the default models_broad); --full-sweep searches for "
+              "this model", file=sys.stderr)
     bundle = load_bundle(args.models)
     cfg = point.apply(load_config(bundle.metadata["config"]))
     cfg["run"]["name"] = f"{cfg['run']['name']}-{point.key}"

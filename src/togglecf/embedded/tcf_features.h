@@ -15,7 +15,7 @@
  * running references, see togglecf.features.windows). Non-finite samples
  * enter the window as NaN (a window holding one gives missing stats of that channel; the trees
  * follow their default branches) and do not update the references, which start at the
- * first finite sample.
+ * first finite sample (the field reference: the first with a finite, non-zero |m|).
  *
  * Memory: all in tcf_features_t (fixed size, TCF_FEATURES_STATE_BYTES; no heap, no globals
  * written). At a window end tcf_features_push keeps the feature row and the tree outputs on

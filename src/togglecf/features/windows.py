@@ -43,7 +43,7 @@ disturbance (issue 12). A deviation from the reference means the same anywhere.
 
 Non-finite input samples: a window that holds a non-finite value of a channel gives NaN
 statistics of that channel (missing values for the trees); the references hold over bad
-samples and start at the first finite one.
+samples and start at the first finite one (the field reference: the first usable one, above).
 
 Window statistics over ``[k−L+1, k]`` (``WINDOW_CHANNELS``): ``mean``, ``std`` (population,
 ``sqrt(max(0, E[(x−c)²] − E[x−c]²))`` with ``c`` the channel's value at sample 0, a shift that
@@ -56,8 +56,8 @@ same values up to floating-point rounding (~1e-9 relative; min/max exactly).
 from __future__ import annotations
 
 import hashlib
-import math
 import json
+import math
 from dataclasses import asdict, dataclass
 from typing import NamedTuple
 

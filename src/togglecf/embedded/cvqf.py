@@ -20,7 +20,7 @@
 ``build_vqf_harness(out_dir)`` compiles the harness with gcc; ``run_vqf_harness(exe, gyr, acc,
 mag)`` runs it on arrays and returns the quaternions ``(N, 4)``.
 
-Cortex-M4F sizes: ``arm_object_size`` / ``arm_stack_usage`` beside the RISC-V ones of
+Cortex-M4F sizes: ``arm_object_size`` / ``unit_chain_stack`` beside the RISC-V ones of
 ``togglecf.embedded.toolchain`` (``arm-none-eabi-gcc -mcpu=cortex-m4 -mfpu=fpv4-sp-d16
 -mfloat-abi=hard -mthumb -Os``, Debian ``gcc-arm-none-eabi``); None when it is not installed.
 """
@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import tempfile
 from dataclasses import asdict, fields
 from pathlib import Path
 
@@ -37,20 +36,17 @@ import numpy as np
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.embedded.cfilter import HARNESS_CFLAGS
 from togglecf.embedded.toolchain import (
-    RISCV_GCC,
     arm_object_size,
-    arm_stack_usage,
     c_float,
-    call_chain_stack,
     link_arm,
     link_riscv,
     measure_sizes,
     need_gcc,
-    riscv_flags,
     run_command,
     run_csv_harness,
     run_host_program,
     template,
+    unit_chain_stack,
 )
 from togglecf.filters.vqf_core import VQFCoreSettings
 
@@ -106,22 +102,6 @@ int main(void) {
   return (int)tcf_q[0];
 }
 """
-
-
-
-
-
-
-# ------------------------------------------------------------------------------------------
-# Cortex-M4F toolchain (beside toolchain.py's RISC-V functions)
-# ------------------------------------------------------------------------------------------
-
-
-def _riscv_stack_usage(c_file, include_dirs, function):
-    flags = riscv_flags()
-    if flags is None:
-        return None
-    return call_chain_stack(RISCV_GCC, flags, c_file, [*include_dirs, Path(c_file).parent], function)
 
 
 # ------------------------------------------------------------------------------------------
@@ -199,11 +179,7 @@ def export_c_vqf(out_dir, fs: float, settings: VQFCoreSettings | None = None, us
         arm = [arm_object_size(f, [out_dir]) for f in srcs]
         report["object_sizes"] = {"host": _sum_sizes([per[str(f)]["host"] for f in srcs]),
                                   "riscv": _sum_sizes([per[str(f)]["riscv"] for f in srcs]), "arm": _sum_sizes(arm)}
-        with tempfile.TemporaryDirectory() as tmp:  # one translation unit: the chain crosses the two files
-            unit = Path(tmp) / "tcf_vqf_unit.c"
-            unit.write_text("".join(f'#include "{f.resolve()}"\n' for f in srcs), encoding="utf-8")
-            report["stack"] = {"riscv": _riscv_stack_usage(unit, [out_dir], "tcf_vqf_update"),
-                               "arm": arm_stack_usage(unit, [out_dir], "tcf_vqf_update")}
+        report["stack"] = unit_chain_stack(srcs, [out_dir], "tcf_vqf_update")  # the chain crosses the two files
         report["linked_riscv"] = link_riscv(srcs, [out_dir], _LINK_MAIN)
         report["linked_arm"] = link_arm([out_dir / f for f in VQF_SOURCES], [out_dir], _LINK_MAIN)
     atomic_write_json(out_dir / "vqf_report.json", report)

@@ -28,7 +28,6 @@ runs it on arrays (``predictions=``: drive steps 1-5 with given predictions inst
 from __future__ import annotations
 
 import shutil
-import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -52,7 +51,6 @@ from togglecf.embedded.toolchain import (
     arm_available,
     arm_object_size,
     c_float,
-    call_chain_stack,
     link_arm,
     link_riscv,
     measure_sizes,
@@ -63,6 +61,7 @@ from togglecf.embedded.toolchain import (
     run_prediction_harness,
     run_host_program,
     template,
+    unit_chain_stack,
 )
 from togglecf.toggling.gains import GAINS_FILE
 from togglecf.toggling.load import load_toggling_filter
@@ -121,7 +120,6 @@ int main(void) {
 """
 
 #: one translation unit of the four sources, for the stack of the whole tcf_vqft_update chain
-_AMALGAMATION = "".join(f'#include "{s}"\n' for s in VQFT_SOURCES)
 
 
 def state_bytes_formula(window: int, n_classes: int) -> int:
@@ -219,17 +217,7 @@ def _reachable_code(srcs, out_dir: Path) -> dict:
 def _stack(out_dir: Path) -> dict:
     """Deepest stack of the ``tcf_vqft_update`` call chain over all four sources (one
     translation unit; libm not counted), rv32imc and Cortex-M4F (None without the compiler)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        amalg = Path(tmp) / "tcf_vqft_all.c"
-        amalg.write_text(_AMALGAMATION)
-        rv = riscv_flags()
-        out = {"riscv": None if rv is None else call_chain_stack(RISCV_GCC, rv, amalg, [out_dir], "tcf_vqft_update"),
-               "arm": (call_chain_stack(ARM_GCC, list(ARM_FLAGS), amalg, [out_dir], "tcf_vqft_update")
-                       if arm_available() else None)}
-    for v in out.values():  # static functions are named "<file>:<name>" by gcc: keep the name
-        if v is not None:
-            v["path"] = [name.rsplit(":", 1)[-1] for name in v["path"]]
-    return out
+    return unit_chain_stack([out_dir / s for s in VQFT_SOURCES], [out_dir], "tcf_vqft_update")
 
 
 def export_c_vqf_toggling(model_dir, out_dir, fs: float, use_mag: bool = True, *, sizes: bool = True) -> dict:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["RISCV_GCC", "RISCV_FLAGS", "ARM_GCC", "ARM_SIZE", "ARM_FLAGS", "arm_available", "arm_object_size",
-           "call_chain_stack", "arm_stack_usage", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
+           "call_chain_stack", "unit_chain_stack", "template", "need_gcc", "run_host_program", "run_harness_command", "write_imu_csv", "native_stderr_silenced", "run_command", "gcc_shared", "c_float",
            "riscv_flags", "object_size", "measure_sizes", "stack_usage", "link_riscv", "link_arm", "reachable_code_size",
            "run_prediction_harness", "run_csv_harness"]
 
@@ -246,11 +246,21 @@ def call_chain_stack(compiler, flags, c_file, include_dirs, root: str) -> dict:
     return {"frame": frames[root], "chain": chain, "path": path, "external": external}
 
 
-def arm_stack_usage(c_file, include_dirs, function: str) -> dict | None:
-    """``call_chain_stack`` for the Cortex-M4F, or None without the cross compiler."""
-    if not arm_available():
-        return None
-    return call_chain_stack(ARM_GCC, list(ARM_FLAGS), c_file, [*include_dirs, Path(c_file).parent], function)
+def unit_chain_stack(c_files, include_dirs, root: str) -> dict:
+    """``call_chain_stack`` of ``root`` over ``c_files`` compiled as one translation unit (a chain
+    may cross the files): ``{"riscv": ..., "arm": ...}``, None for a missing cross compiler. gcc
+    names static functions "<file>:<name>" there; the path keeps the name."""
+    with tempfile.TemporaryDirectory() as tmp:
+        unit = Path(tmp) / "unit.c"
+        unit.write_text("".join(f'#include "{Path(f).resolve()}"\n' for f in c_files), encoding="utf-8")
+        rv = riscv_flags()
+        out = {"riscv": None if rv is None else call_chain_stack(RISCV_GCC, rv, unit, include_dirs, root),
+               "arm": call_chain_stack(ARM_GCC, list(ARM_FLAGS), unit, include_dirs, root) if arm_available()
+               else None}
+    for v in out.values():
+        if v is not None:
+            v["path"] = [name.rsplit(":", 1)[-1] for name in v["path"]]
+    return out
 
 
 def template(name: str) -> str:

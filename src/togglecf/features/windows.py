@@ -155,7 +155,7 @@ class FeatureCoefficients(NamedTuple):
     ref_new_min_gyr_sq: float
 
 
-def feature_coefficients(fs: float, settings: "FeatureSettings") -> FeatureCoefficients:
+def feature_coefficients(fs: float, settings: FeatureSettings) -> FeatureCoefficients:
     """``FeatureSettings`` (physical units) to the per-sample constants at ``fs`` [Hz]."""
     return FeatureCoefficients(fs=float(fs), window_length=int(window_length(fs, settings.window_s)),
                                ref_decay=math.exp(-1.0 / (settings.ref_tau_s * fs)),
@@ -293,6 +293,12 @@ def mag_reference_start(r, d, cand_r, cand_d, cand_n, mn, dip):
 
 
 @njit(cache=True, inline="always")
+def _field_agrees(ref_r, ref_d, mn, dip, params):
+    """|m_k| within ``ref_norm_th`` (relative) and δ_k within ``ref_dip_th`` of a field (VQF's M2/M3 test)."""
+    return abs(mn - ref_r) < params.ref_norm_th * ref_r and abs(dip - ref_d) < params.ref_dip_th
+
+
+@njit(cache=True, inline="always")
 def mag_reference_step(r, d, cand_r, cand_d, cand_n, mn, dip, gyr_sq, params):
     """The field reference after sample k (module docstring): ``(r, d, cand_r, cand_d, cand_n)``
     [µT, rad, µT, rad, samples] updated with |m_k| = ``mn`` [µT], δ_k = ``dip`` [rad] (finite by
@@ -302,11 +308,11 @@ def mag_reference_step(r, d, cand_r, cand_d, cand_n, mn, dip, gyr_sq, params):
     if not (math.isfinite(mn) and mn > 0.0):
         return r, d, cand_r, cand_d, cand_n  # a bad or zero-norm sample says nothing about the field
     k = 1.0 - params.ref_decay
-    agree = abs(mn - r) < params.ref_norm_th * r and abs(dip - d) < params.ref_dip_th  # (M2)
+    agree = _field_agrees(r, d, mn, dip, params)  # (M2)
     if agree:
         r += k * (mn - r)
         d += k * (dip - d)
-    if abs(mn - cand_r) < params.ref_norm_th * cand_r and abs(dip - cand_d) < params.ref_dip_th:  # (M3)
+    if _field_agrees(cand_r, cand_d, mn, dip, params):  # (M3)
         if gyr_sq >= params.ref_new_min_gyr_sq and cand_n < params.ref_new_samples:
             cand_n += 1.0
         cand_r += k * (mn - cand_r)

@@ -11,6 +11,10 @@ cross-dataset protocol.
    the BROAD directory) is there: models trained on all of BROAD scored on every phone trial ->
    reports/transfer/phone.md; and the held-out study on BROAD + phone together (folds by whole
    trial over both; no ablations) -> reports/study_both/ (per-dataset rows in its tables).
+4. Leave one dataset out, over BROAD and every directory in BROAD's layout beside it (today the
+   Nexus 5 and the iPhone 4S data): train on all the others, score the one left out; the learned
+   filters beside their cores with learning off, per dataset and group (``togglecf.run.lodo``)
+   -> reports/lodo/lodo.md (9D: the learned filters' 9D gains; the harm to find was in the heading).
 
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-3 on an existing reports/study
 """
@@ -26,6 +30,7 @@ from togglecf.core.log import setup_logging
 from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
 from togglecf.data.download import download_broad
 from togglecf.run.config import load_config
+from togglecf.run.lodo import dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
 from togglecf.run.study import load_study_config, run_study
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
@@ -34,6 +39,7 @@ DEFAULT_DOWNLOAD_DIR = Path("data/broad")
 STUDY_DIR = Path("reports/study")
 TRANSFER_DIR = Path("reports/transfer")
 BOTH_DIR = Path("reports/study_both")
+LODO_DIR = Path("reports/lodo")
 log = logging.getLogger("togglecf.main")
 
 
@@ -79,7 +85,28 @@ def main(argv=None) -> int:
     if phone is None:
         log.warning("phone data not found (set TOGGLECF_PHONE_DATA or put it beside BROAD as tyrex_nexus5): "
                     "the sensor transfer and the two-dataset study are skipped")
-        return 0
+    else:
+        sensor_and_both(broad, phone, command)
+    leave_datasets_out(broad, command)
+    return 0
+
+
+def leave_datasets_out(broad: Path, command: str) -> None:
+    dirs = dataset_dirs(broad)
+    if len(dirs) < 2:
+        log.warning(f"no other dataset in BROAD's layout beside {broad}: leave one dataset out skipped")
+        return
+    cfg = load_config()
+    cfg["gains"]["modes"] = ["9d", "vqf_9d"]
+    results = leave_one_dataset_out(dirs, Path("build/lodo"), cfg)
+    LODO_DIR.mkdir(parents=True, exist_ok=True)
+    text = lodo_table(results, dirs, command)
+    atomic_write_text(LODO_DIR / "lodo.md", text)
+    atomic_write_json(LODO_DIR / "lodo.json", lodo_json(results))
+    print(text)
+
+
+def sensor_and_both(broad: Path, phone: Path, command: str) -> None:
     log.info(f"sensor: models trained on all of BROAD, scored on every trial of {phone}")
     model_dir = Path("build/transfer/models_broad")
     run_training(load_config(), data_dir=broad, out=model_dir, verbose=True)
@@ -91,7 +118,6 @@ def main(argv=None) -> int:
     log.info("both datasets: the held-out study on BROAD + phone (folds by whole trial over both)")
     cfg = replace(load_study_config(), ablations=())
     run_study(cfg, data_dir=[str(broad), str(phone)], out_dir=BOTH_DIR)
-    return 0
 
 
 if __name__ == "__main__":

@@ -158,6 +158,24 @@ def test_acc_in_g_detected(tmp_path):
         load_trial(tmp_path / "t.hdf5")
 
 
+def test_acc_in_mg_detected(tmp_path):
+    fields = synthetic_fields()
+    fields["imu_acc"] = fields["imu_acc"] / 9.81 * 1000.0
+    write_hdf5(tmp_path / "t.hdf5", fields)
+    with pytest.raises(DataError, match="field 'acc'.*looks like mg, expected m/s²"):
+        load_trial(tmp_path / "t.hdf5")
+
+
+def test_vigorous_motion_is_not_a_unit_error(tmp_path):
+    # a phone in a running hand reads a median |acc| of 20-24 m/s² (the iPhone 4S RunningHand trials);
+    # no other unit explains that, so it must load (issue 25: it was refused as "implausible")
+    fields = synthetic_fields()
+    fields["imu_acc"] = fields["imu_acc"] * 2.4
+    write_hdf5(tmp_path / "t.hdf5", fields)
+    t = load_trial(tmp_path / "t.hdf5")
+    assert 20.0 < np.median(np.linalg.norm(t.acc, axis=1)) < 26.0
+
+
 def test_gyro_in_deg_per_s_detected(tmp_path):
     fields = synthetic_fields()
     fields["imu_gyr"] = np.degrees(fields["imu_gyr"]) * 10  # a fast trial in °/s

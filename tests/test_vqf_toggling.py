@@ -112,7 +112,7 @@ def test_sigma_motion_is_not_learned_by_default():
         grids = dict(search.candidates(search.start(STATES)))
         for s in STATES:
             assert [v for v, _ in grids[f"bias_sigma_motion_states[{s}]"]] == [core]
-        assert len(grids[f"tau_mag_states[{STATES[0]}]"]) > 1  # the other per-state values are still searched
+        assert len(grids[f"tau_acc_states[{STATES[0]}]"]) > 1  # τ_acc is still searched per state
 
 
 def test_update_equals_batch_and_state_splits(mini_trial, rng):
@@ -160,3 +160,67 @@ def test_train_learns_vqf_gains_and_the_registry_runs_them(vqf_model_dir, mini_i
     P = np.column_stack([o.diagnostics[n] for n in names])
     ref = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=P)
     assert np.array_equal(o.quat, ref.quat)
+
+
+def _switching_record(fs, seconds=120.0, period_s=0.5, amp=4.0):
+    """A still sensor (level, gravity on z) shaken along x by a zero-mean square wave of ±``amp``
+    m/s² with period ``period_s``, and predictions made from that same signal: state 0 while the
+    push is +x, state 1 while it is −x (one-hot, held as the models hold them)."""
+    n = int(seconds * fs)
+    t = np.arange(n) / fs
+    push = np.where(np.sin(2 * np.pi * t / period_s) >= 0.0, amp, -amp)
+    acc = np.zeros((n, 3))
+    acc[:, 0], acc[:, 2] = push, 9.81
+    pred = np.zeros((n, 10))
+    pred[:, 0], pred[:, 1] = push > 0, push < 0
+    return np.zeros((n, 3)), acc, pred
+
+
+def _final_tilt_deg(fs, modulation_tau):
+    gyr, acc, pred = _switching_record(fs)
+    s = VQFTogglingSettings(states=STATES, tau_acc_states=(1.0, 10.0, 3.0, 3.0), modulation_tau=modulation_tau)
+    q = VQFTogglingFilter(fs, s, use_mag=False).update_batch(gyr, acc, None, predictions=pred).quat[-1]
+    return np.degrees(angle_between(q[None], np.array([[1.0, 0.0, 0.0, 0.0]])))[0]
+
+
+@pytest.mark.parametrize("fs", [100.0, 285.714])
+def test_time_constants_that_follow_the_signal_bias_the_tilt_unless_they_follow_slowly(fs):
+    """Why ``modulation_tau`` exists (issue 24). The τ_acc low-pass is a running average whose weights are its
+    gains: switched with every prediction, and predictions made from the signal itself, it weighs the +x pushes
+    (τ 1 s) ten times more than the −x ones (τ 10 s), so the zero-mean shaking leaves a tilt. Its size follows
+    from the weights: with gains ∝ 1/τ² for the second-order low-pass the average push is about
+    4 (1 − 0.01)/(1 + 0.01) ≈ 3.9 m/s², atan(3.9 / 9.81) ≈ 22°; anything above 10° shows the bias. Followed
+    with a 3-s time constant (six switching periods) τ sits near its geometric mean on both halves and the
+    bias nearly vanishes: below a tenth of the switched one (measured: under 1°)."""
+    switched, followed = _final_tilt_deg(fs, 0.0), _final_tilt_deg(fs, 3.0)
+    assert switched > 10.0
+    assert followed < 0.1 * switched
+
+
+@pytest.mark.parametrize("fs", [100.0, 400.0])
+def test_modulation_follows_with_its_time_constant_in_seconds(fs):
+    """First-order law in seconds at any rate: one time constant after a switch from the core's τ_acc (3 s) to a
+    state's 10 s, ln τ has moved 1 − e⁻¹ of the way (to the per-sample discretisation: 1/fs of 3 s ≤ 0.3 %);
+    after ten it is there."""
+    n = int(40 * fs)
+    pred = np.zeros((n, 10))
+    pred[:, 1] = 1.0
+    s = VQFTogglingSettings(states=STATES, tau_acc_states=(3.0, 10.0, 3.0, 3.0), modulation_tau=3.0)
+    z = np.zeros((n, 3))
+    z[:, 2] = 9.81
+    tau = VQFTogglingFilter(fs, s, use_mag=False).update_batch(np.zeros((n, 3)), z, None, predictions=pred).diagnostics["tau_acc"]
+    moved = np.log(tau / 3.0) / np.log(10.0 / 3.0)
+    assert abs(moved[int(3.0 * fs) - 1] - (1 - np.exp(-1))) < 5e-3
+    assert abs(tau[int(30.0 * fs)] - 10.0) < 1e-3
+
+
+def test_learning_off_is_the_core_with_a_followed_modulation(mini_trial, rng):
+    """``modulation_tau`` only changes how the learned values are reached: with every per-state value at the
+    core's, the filter is the core (as ``test_learning_off_is_the_core``, to rounding)."""
+    t = mini_trial
+    core = VQFCoreFilter(t.fs).update_batch(t.gyr, t.acc, t.mag)
+    off = VQFTogglingSettings(states=STATES, modulation_tau=3.0)
+    o = VQFTogglingFilter(t.fs, off).update_batch(t.gyr, t.acc, t.mag, predictions=_predictions(t.n_samples, rng))
+    assert np.max(angle_between(o.quat, core.quat)) < 1e-9
+    with pytest.raises(ValueError, match="modulation_tau"):
+        VQFTogglingSettings(states=STATES, modulation_tau=-1.0)

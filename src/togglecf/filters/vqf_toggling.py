@@ -82,6 +82,12 @@ class VQFTogglingSettings(VQFCoreSettings):
         mag_disturbance_scale: σ_m [µT] of step 3: the heading gain is divided by
             1 + (|η̂_m| / σ_m)² (9D); 0 (default) = off.
         noise_weight_acc, noise_weight_mag: w_a, w_m in [0, 1] of step 4 (default 0: off).
+        modulation_tau: time constant [s] with which ln τ_acc and ln τ_mag follow their blended
+            values of step 2 (a first-order low-pass at the filter's rate); 0 (default): at once.
+            Why: the τ_acc low-pass is a running average whose weights are its gains; gains that
+            change from hop to hop with predictions made from the same signal weight the signal
+            by its own content, which biases the average (the inclination). Changing a time
+            constant no faster than the time scale it sets keeps the average unbiased.
     """
 
     states: tuple = ("static", "dynamic")
@@ -94,6 +100,7 @@ class VQFTogglingSettings(VQFCoreSettings):
     mag_disturbance_scale: float = 0.0
     noise_weight_acc: float = 0.0
     noise_weight_mag: float = 0.0
+    modulation_tau: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -119,6 +126,8 @@ class VQFTogglingSettings(VQFCoreSettings):
             raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
         if not (0.0 <= self.noise_weight_acc <= 1.0 and 0.0 <= self.noise_weight_mag <= 1.0):
             raise ValueError("noise weights must be in [0, 1]")
+        if not (self.modulation_tau >= 0.0 and math.isfinite(self.modulation_tau)):
+            raise ValueError(f"modulation_tau must be a finite time constant >= 0 s, got {self.modulation_tau}")
         if self.tau_mag == 0.0:
             raise ValueError("tau_mag must be > 0 s for the learned filter (its blend is in ln τ)")
 
@@ -136,14 +145,16 @@ VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
     ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
     ("confidence_floor", float), ("mag_disturbance_scale", float), ("noise_weight_acc", float),
-    ("noise_weight_mag", float)])
+    ("noise_weight_mag", float), ("modulation_gain", float)])
 
 _MOD_NAMES = tuple(f"mod_{f}" for f in CoreModulation._fields)
 _STATE_NAMES = (VQFCoreFilter.state_names + _MOD_NAMES + ("tau_acc_now", "tau_mag_now", "trust_now")
-                + tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE)))
+                + tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE))
+                + ("ln_tau_acc_target", "ln_tau_mag_target", "ln_tau_acc_now", "ln_tau_mag_now", "mag_backoff"))
 O_MOD = 5 + len(VQFCoreFilter.state_names)
 O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
 O_LAST_P = O_NOW + 3
+O_FOLLOW = O_LAST_P + MAX_STATES + N_PRED_NOISE  # targets and followed ln τ_acc, ln τ_mag; the heading back-off
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
 N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
 
@@ -196,17 +207,48 @@ def modulate(state, p, pred):
     tau_acc, tau_mag = math.exp(la), math.exp(lm)
     b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)  # step 3
     w_motion = bias_noise_w(math.exp(ls), p.bias_v)
-    k_mag = gain_from_tau(tau_mag, p.ts)
+    backoff = 1.0  # the divisor of the heading gain
     if p.mag_disturbance_scale > 0.0:  # the predicted disturbance (no prediction: NaN, no change)
         e0, e1, e2 = pred[ns + 3], pred[ns + 4], pred[ns + 5]
         e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
         if e >= 0.0:  # False for NaN
-            k_mag = k_mag / (1.0 + e)
+            backoff = 1.0 + e
+    k_mag = gain_from_tau(tau_mag, p.ts)
+    if backoff != 1.0:
+        k_mag = k_mag / backoff
     mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
            math.exp(2.0 * lg), math.exp(2.0 * lc))
-    for i in range(len(mod)):
+    first = 0 if p.modulation_gain >= 1.0 else 6  # followed: τ_acc's coefficients and k_mag set by _follow
+    for i in range(first, len(mod)):
         state[O_MOD + i] = mod[i]
+    state[O_FOLLOW], state[O_FOLLOW + 1], state[O_FOLLOW + 4] = la, lm, backoff
     return tau_acc, tau_mag, lam
+
+
+@njit(cache=True)
+def _follow(state, p):
+    """``modulation_tau``: ln τ_acc and ln τ_mag one step towards their targets (first-order
+    low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves, k_mag every sample
+    (the back-off applies at once: it only ever lowers the heading gain)."""
+    k = p.modulation_gain
+    la, lm = state[O_FOLLOW + 2], state[O_FOLLOW + 3]
+    ta, tm = state[O_FOLLOW], state[O_FOLLOW + 1]
+    if la != ta:
+        la += k * (ta - la)
+        if abs(ta - la) < 1e-9:
+            la = ta
+        state[O_FOLLOW + 2] = la
+        tau_acc = math.exp(la)
+        b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)
+        state[O_MOD], state[O_MOD + 1], state[O_MOD + 2], state[O_MOD + 3], state[O_MOD + 4] = b0, b1, b2, a1, a2
+        state[O_NOW] = tau_acc
+    if lm != tm:
+        lm += k * (tm - lm)
+        if abs(tm - lm) < 1e-9:
+            lm = tm
+        state[O_FOLLOW + 3] = lm
+        state[O_NOW + 1] = math.exp(lm)
+    state[O_MOD + 5] = gain_from_tau(state[O_NOW + 1], p.ts) / state[O_FOLLOW + 4]
 
 
 @njit(cache=True, inline="always")
@@ -222,7 +264,12 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     p = params
     ns = p.n_states
     if _prediction_changed(state, pred, ns + (N_PRED_NOISE if p.mag_disturbance_scale > 0.0 else 0)):
-        state[O_NOW], state[O_NOW + 1], state[O_NOW + 2] = modulate(state, p, pred)
+        tau_acc, tau_mag, lam = modulate(state, p, pred)
+        state[O_NOW + 2] = lam
+        if p.modulation_gain >= 1.0:
+            state[O_NOW], state[O_NOW + 1] = tau_acc, tau_mag
+    if p.modulation_gain < 1.0:
+        _follow(state, p)
     eta_ok = True
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
@@ -265,7 +312,8 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
                 "ln_rest_th_gyr_core": math.log(s.rest_th_gyr * _DEG), "ln_rest_th_acc_core": math.log(s.rest_th_acc),
                 "confidence_floor": s.confidence_floor,
                 "mag_disturbance_scale": s.mag_disturbance_scale if self.use_mag else 0.0,
-                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag}
+                "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
+                "modulation_gain": gain_from_tau(s.modulation_tau, self.Ts)}
 
     def reset(self):
         """The core's initial state; the modulation starts at the core's own coefficients (no
@@ -277,6 +325,8 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
             self.state[O_MOD + i] = getattr(p, name)
         self.state[O_NOW:O_NOW + 3] = (self.settings.tau_acc, self.settings.tau_mag, 0.0)
         self.state[O_LAST_P:O_LAST_P + MAX_STATES + N_PRED_NOISE] = np.nan
+        ln_core = (math.log(self.settings.tau_acc), math.log(self.settings.tau_mag))
+        self.state[O_FOLLOW:O_FOLLOW + 5] = (*ln_core, *ln_core, 1.0)
 
     def _default_pred(self, n):
         return np.full((n, self.n_predictions), np.nan)

@@ -143,6 +143,8 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     if cv:
         t0 = time.perf_counter()
         result["cv"], oof = cross_validate(cfg, data, schema, class_names, backend=backend)
+        # every trial's per-sample predictions from the CV models that did not train on it
+        result["oof_predictions"] = {n: hold_predictions(*oof[n], data.per_trial[n]["n_samples"]) for n in names}
         timing["cv_s"] = time.perf_counter() - t0
         if verbose:
             print(format_cv_table(result["cv"], class_names))
@@ -179,10 +181,7 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     if gcfg.get("learn", True):  # the toggling filter's gains, on the same training trials
         t0 = time.perf_counter()
         search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in GAIN_KEYS})
-        preds = None
-        if oof is not None:  # every trial's predictions from the CV models that did not train on it
-            preds = [hold_predictions(*oof[n], data.per_trial[n]["n_samples"]) for n in names]
-            result["oof_predictions"] = dict(zip(names, preds))
+        preds = [result["oof_predictions"][n] for n in names] if oof is not None else None
         learn_and_save_gains(out_dir, [index.load(n) for n in names], search, tuple(gcfg.get("modes", ("9d", "6d"))),
                              jobs=int(run["nthread"]), log=say, predictions=preds,
                              vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})))

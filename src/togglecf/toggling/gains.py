@@ -2,9 +2,19 @@
 
 The models' predictions do not depend on the gains, so they are computed once per trial
 (``CompiledModels.predict_samples``) and every candidate setting only re-runs the cheap
-filter core. The objective is BROAD's: the mean total RMSE over the given trials (6D: with
-the constant heading offset removed). Each parameter is searched on its own grid while the
-others are held; a few sweeps over all parameters converge on these smooth objectives.
+filter core. Each parameter is searched on its own grid while the others are held; a few
+sweeps over all parameters converge on these smooth objectives.
+
+The objective (``OBJECTIVES``) is built on BROAD's total RMSE per trial (6D: with the constant
+heading offset removed):
+
+* ``"worst_dataset_log_ratio"`` (default): per trial ln(RMSE / RMSE at the start), the start being
+  learning off; averaged per dataset (the ``<dataset>/`` prefix of a trial's name; one dataset
+  when there is none); the worst dataset's mean, plus 10⁻³ × the mean over datasets to break
+  ties. No dataset can dominate: a change is kept only where it helps the dataset it helps least,
+  and a trial counts by its relative change, so the datasets with the largest errors do not choose
+  the values for everyone.
+* ``"mean_rmse"``: the mean total RMSE over all trials (the objective until issue 24).
 """
 from __future__ import annotations
 
@@ -28,7 +38,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format"]
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +49,34 @@ _TAU_GRID = (-1.0, 116.7, 35.0, 17.5, 6.998, 3.498, 1.748, 0.6982, 0.3482, 0.173
 #: ``gains.json`` format: 2 = time constants [s] and the training rate(s) (``trained_fs``);
 #: 1 (no ``format`` key) = per-sample gains at the training rate, refused by ``load_gains``
 GAINS_FORMAT = 2
+
+#: objectives of the descent (module docstring)
+OBJECTIVES = ("worst_dataset_log_ratio", "mean_rmse")
+#: weight of the mean over datasets beside the worst one (ties of the worst dataset)
+_TIE_BREAK = 1e-3
+
+
+def trial_datasets(trials) -> np.ndarray:
+    """The dataset of each trial: the ``<dataset>/`` prefix of its name (``MultiIndex``), else ``""``."""
+    return np.array([str(getattr(t, "name", t)).partition("/")[0] if "/" in str(getattr(t, "name", t)) else ""
+                     for t in trials])
+
+
+def objective_value(name: str, rmse, start_rmse, datasets) -> float:
+    """The descent's objective ``name`` (``OBJECTIVES``) from per-trial total RMSEs [deg] ``rmse``,
+    the same at the descent's start ``start_rmse`` and each trial's dataset (``trial_datasets``).
+    Trials whose RMSE is not finite (no scored sample) are left out."""
+    rmse, start_rmse = np.asarray(rmse, np.float64), np.asarray(start_rmse, np.float64)
+    if name == "mean_rmse":
+        return float(np.mean(rmse))
+    if name != "worst_dataset_log_ratio":
+        raise ValueError(f"gain objective must be one of {OBJECTIVES}, got {name!r}")
+    ok = np.isfinite(rmse) & np.isfinite(start_rmse) & (start_rmse > 0)
+    ratio = np.log(np.where(ok, rmse, 1.0) / np.where(ok, start_rmse, 1.0))
+    per = [float(np.mean(ratio[ok & (datasets == d)])) for d in np.unique(datasets[ok])]
+    if not per:
+        return float("nan")
+    return max(per) + _TIE_BREAK * float(np.mean(per))
 
 
 def _search_from_dict(cls, d: dict, what: str):
@@ -59,9 +97,11 @@ class GainSearch:
         bias_tau: grid of the rest-bias low-pass time constant [s] (< 0: no bias estimate).
         bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
         mag_disturbance_scale: grid of σ_m (0 = off).
-        noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise.
+        noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise (default 0
+            only: a noise vector learned on one sensor does not belong in another's signal, issue 24).
         confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
         sweeps: passes over all parameters.
+        objective: what the descent minimises (``OBJECTIVES``, module docstring).
     """
 
     tau: tuple = _TAU_GRID
@@ -69,10 +109,15 @@ class GainSearch:
     bias_tau: tuple = (-1.0, 11.66, 3.498, 1.165)  # gains 0, 0.0003, 0.001, 0.003 at 285.714 Hz
     bias_gate: tuple = (0.02, 0.05)
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
-    noise_weight_acc: tuple = (0.0, 0.5, 1.0)
-    noise_weight_mag: tuple = (0.0, 0.5, 1.0)
+    noise_weight_acc: tuple = (0.0,)
+    noise_weight_mag: tuple = (0.0,)
     confidence_floor: tuple = (0.0,)
     sweeps: int = 2
+    objective: str = "worst_dataset_log_ratio"
+
+    def __post_init__(self):
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"gain-search objective must be one of {OBJECTIVES}, got {self.objective!r}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "GainSearch":
@@ -115,6 +160,12 @@ class VQFGainSearch:
     σ_m [µT] of the heading gain (9D); the noise weights. The descent starts at the core's own
     settings (learning off), so on the training trials it can only improve on the core.
 
+    By default (issue 24) only what travels between sensors is learned: τ_acc per state and the
+    heading back-off σ_m of a predicted disturbance (µT, of the predicted noise); τ_mag, the rest
+    thresholds (m/s², °/s: properties of the sensor's noise) and the noise-vector weights
+    (subtracting a noise vector learned on one sensor from another's signal) keep the core's
+    values (grids of one value); the measurement is in docs/concepts/vqf-core.md.
+
     σ_motion's grid is the core's value alone (not learned) by default: it is the steady-state
     uncertainty of the gyro-bias estimate, a property of the gyroscope rather than of the motion,
     and values learned per state on one sensor do not travel to another (issue 12; the measurement
@@ -122,22 +173,31 @@ class VQFGainSearch:
     sensor."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
-    tau_mag: tuple = (2.0, 5.0, 9.0, 20.0, 50.0, 120.0)
+    tau_mag: tuple = (9.0,)
     bias_sigma_motion: tuple = (0.1,)
-    rest_th_gyr: tuple = (1.0, 2.0, 4.0)
-    rest_th_acc: tuple = (0.25, 0.5, 1.0)
+    rest_th_gyr: tuple = (2.0,)
+    rest_th_acc: tuple = (0.5,)
     confidence_floor: tuple = (0.0, 0.5, 0.7)
     mag_disturbance_scale: tuple = (0.0, 3.0, 10.0)
-    noise_weight_acc: tuple = (0.0, 0.5, 1.0)
-    noise_weight_mag: tuple = (0.0, 0.5, 1.0)
+    noise_weight_acc: tuple = (0.0,)
+    noise_weight_mag: tuple = (0.0,)
     sweeps: int = 2
+    objective: str = "worst_dataset_log_ratio"
+    modulation_tau: float = 3.0
+
+    def __post_init__(self):
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"VQF gain-search objective must be one of {OBJECTIVES}, got {self.objective!r}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "VQFGainSearch":
         return _search_from_dict(cls, d, "VQF gain-search")
 
     def start(self, states, static_state=None) -> VQFTogglingSettings:
-        return VQFTogglingSettings(states=tuple(states))
+        """The core's own settings (learning off) with ``modulation_tau`` [s], the time constant with
+        which the learned τ_acc, τ_mag follow the predictions (``VQFTogglingSettings``; not searched:
+        a time constant changes no faster than the time scale it sets, VQF's τ_acc of 3 s)."""
+        return VQFTogglingSettings(states=tuple(states), modulation_tau=float(self.modulation_tau))
 
     def candidates(self, settings: VQFTogglingSettings, use_mag: bool = True):
         n = len(settings.states)
@@ -200,12 +260,17 @@ def _total_rmse_deg(q_est, q_ref, movement):
     return math.degrees(math.sqrt(s / k)) if k else math.nan
 
 
-def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True, pool=None) -> float:
-    """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``.
+def trial_total_rmse(settings, trials, predictions, use_mag: bool = True, pool=None) -> np.ndarray:
+    """BROAD's total RMSE [deg] per trial of the learned filter with ``settings`` ``(n_trials,)``.
     ``pool``: an ``_TrialPool`` (from ``learn_gains``) to spread the trials over processes."""
     if pool is not None:
-        return float(np.mean(pool.map(settings, use_mag)))
-    return float(np.mean([_trial_total(t, p, settings, use_mag) for t, p in zip(trials, predictions)]))
+        return np.array(pool.map(settings, use_mag), np.float64)
+    return np.array([_trial_total(t, p, settings, use_mag) for t, p in zip(trials, predictions)], np.float64)
+
+
+def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True, pool=None) -> float:
+    """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``."""
+    return float(np.mean(trial_total_rmse(settings, trials, predictions, use_mag, pool)))
 
 
 _WORK = {}
@@ -253,7 +318,13 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
 
 def _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool):
     settings = start or search.start(states, static_state)
-    best = mean_total_rmse(settings, trials, predictions, use_mag, pool)
+    datasets = trial_datasets(trials)
+    at_start = trial_total_rmse(settings, trials, predictions, use_mag, pool)
+
+    def objective(rmse):
+        return objective_value(search.objective, rmse, at_start, datasets)
+
+    best = objective(at_start)
     history = [("start", None, best)]
     coords = list(search.candidates(settings, use_mag))
     for sweep in range(search.sweeps):
@@ -264,12 +335,12 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
                 trial_settings = replace(settings, **change)
                 if trial_settings == settings:
                     continue
-                obj = mean_total_rmse(trial_settings, trials, predictions, use_mag, pool)
+                obj = objective(trial_total_rmse(trial_settings, trials, predictions, use_mag, pool))
                 if obj < best - 1e-9:
                     best, settings, improved = obj, trial_settings, True
                     history.append((label, value, obj))
             if verbose:
-                logger.info(f"  {label}: {best:.4f}°")
+                logger.info(f"  {label}: {search.objective} {best:.4f}")
         if not improved:
             break
     return settings, history
@@ -278,8 +349,14 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
 GAINS_FILE = "gains.json"
 
 
+_OBJECTIVE_TEXT = {
+    "mean_rmse": "mean total RMSE [deg] over the trials (BROAD)",
+    "worst_dataset_log_ratio": "worst dataset's mean ln(total RMSE / at learning off) per trial, + 1e-3 x the mean "
+                               "over datasets (BROAD's total RMSE)"}
+
+
 def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True,
-               predictions: str = "in-sample"):
+               predictions: str = "in-sample", search=None):
     """Write ``gains.json`` beside the models (atomically): ``"format": GAINS_FORMAT``, the learned
     settings (time constants in s), the trials they were learned on and their sampling rate(s)
     (``trained_fs`` [Hz], per mode and for the file), the objective history and the models'
@@ -298,7 +375,7 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     doc["trained_fs"] = sorted(set(doc.get("trained_fs", [])) | set(rates))
     doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trained_fs": rates,
                 "trials": [getattr(t, "name", t) for t in trials],
-                "objective": "mean total RMSE [deg] over the trials (BROAD)", "predictions": predictions,
+                "objective": _OBJECTIVE_TEXT[getattr(search, "objective", "mean_rmse")], "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)
     return path
@@ -367,9 +444,9 @@ def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d
         mode_search = search if kind == "toggling" else (vqf_search or VQFGainSearch())
         settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=use_mag,
                                      search=mode_search, jobs=jobs)
-        save_gains(model_dir, settings, trials, hist, use_mag=use_mag, predictions=source)
-        log(f"gains {mode} ({source} predictions): mean total RMSE on the training trials {hist[0][2]:.3f}° -> "
-            f"{hist[-1][2]:.3f}° in {time.perf_counter() - t0:.0f} s: {describe_gains(settings)}")
+        save_gains(model_dir, settings, trials, hist, use_mag=use_mag, predictions=source, search=mode_search)
+        log(f"gains {mode} ({source} predictions): {mode_search.objective} on the training trials "
+            f"{hist[0][2]:.4f} -> {hist[-1][2]:.4f} in {time.perf_counter() - t0:.0f} s: {describe_gains(settings)}")
         out[mode] = settings
     return out
 
@@ -381,7 +458,7 @@ def describe_gains(settings) -> str:
                 f"{settings.bias_sigma_motion_states} °/s, rest th_ω {settings.rest_th_gyr_states} °/s, th_a "
                 f"{settings.rest_th_acc_states} m/s², c₀ {settings.confidence_floor}, σ_m "
                 f"{settings.mag_disturbance_scale} µT, noise weights {settings.noise_weight_acc}/"
-                f"{settings.noise_weight_mag}")
+                f"{settings.noise_weight_mag}, modulation τ {settings.modulation_tau} s")
     return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
             f"bias τ {settings.bias_tau} s, σ_m {settings.mag_disturbance_scale}, noise weights "
             f"{settings.noise_weight_acc}/{settings.noise_weight_mag}, c₀ {settings.confidence_floor}")

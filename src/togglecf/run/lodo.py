@@ -1,0 +1,149 @@
+"""Leave one dataset out: does the learning travel to a sensor, rate and lab it never saw?
+
+For each dataset present (a directory in BROAD's layout), the models and gains are trained on all
+the *other* datasets (``togglecf train``: models, then the gains on the out-of-fold predictions)
+and every trial of the dataset left out is scored:
+
+* the learned filters (``registry.TRAINED``) with their models in the loop;
+* each learned filter's **core with learning off**: for the learned VQF the VQF core at VQF's
+  defaults (``vqf_core``, what it modulates), for the toggling CF the same filter at its gain
+  search's starting point with every learned term off (no prediction: ``TOGGLING_CORE``);
+* the classic filters of ``run.transfer.CLASSIC`` at their documented defaults.
+
+``lodo_table`` reports per dataset and per group, with a paired per-trial comparison of each
+learned filter against its core (wins / ties / losses, Wilcoxon p): a mean can hide a trade.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from togglecf.data.broad import DatasetIndex
+from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
+from togglecf.learn.models import load_bundle
+from togglecf.metrics.broad import trial_errors
+from togglecf.registry import TOGGLING, VQF_TOGGLING
+from togglecf.report.study_report import TIE_DEG, paired_test
+from togglecf.run.config import load_config
+from togglecf.run.scoring import TrialResult
+from togglecf.run.train import run_training
+from togglecf.run.transfer import models_transfer
+from togglecf.toggling.gains import GainSearch
+
+__all__ = ["TOGGLING_CORE", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_results",
+           "lodo_table", "lodo_json"]
+
+log = logging.getLogger(__name__)
+
+#: row name of the toggling CF with learning off (its gain search's start, no prediction used)
+TOGGLING_CORE = "toggling_core"
+#: each learned filter's core with learning off (the row it is compared with)
+CORE_OF = {VQF_TOGGLING: "vqf_core", TOGGLING: TOGGLING_CORE}
+#: rows of the tables, in order
+ROWS = (VQF_TOGGLING, "vqf_core", TOGGLING, TOGGLING_CORE, "madgwick")
+
+
+def dataset_dirs(first: Path) -> list[Path]:
+    """``first`` and every sibling directory in BROAD's layout (a ``trials.json``), ``first``
+    first, the others sorted by name: the datasets of the leave-one-dataset-out protocol."""
+    first = Path(first).resolve()
+    others = sorted(d for d in first.parent.iterdir() if d.is_dir() and d != first and (d / "trials.json").is_file())
+    return [first, *others]
+
+
+def toggling_core_results(model_dir, index: DatasetIndex, names) -> dict:
+    """trial -> ``TrialResult`` of the toggling CF with learning off: the gain search's starting
+    point (``GainSearch.start``: moderate time constants in every state, the noise terms, the
+    disturbance scale and the confidence floor off) fed no prediction (NaN rows), so the models
+    are never used: the filter the learned one would be without its models."""
+    bundle = load_bundle(model_dir)
+    states = tuple(bundle.classifier.class_names_)
+    static = next((c for c in ("rest", "static") if c in states), states[0])
+    settings = GainSearch().start(states, static)
+    out = {}
+    for n in names:
+        t = index.load(n)
+        f = TogglingFilter(t.fs, settings)
+        t0 = time.perf_counter()
+        q = f.update_batch(t.gyr, t.acc, t.mag, predictions=np.full((t.n_samples, len(states) + N_PRED_NOISE),
+                                                                      np.nan)).quat
+        us = 1e6 * (time.perf_counter() - t0) / t.n_samples
+        out[n] = TrialResult(t.name, t.groups, trial_errors(q, t.opt_quat, t.movement), us, t.n_samples)
+    return out
+
+
+def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True) -> dict:
+    """For each directory of ``dirs`` (at least two): train on all the others into
+    ``out_dir/without_<name>/models`` and score every trial of the one left out. Returns
+    ``{dataset name: {filter: {trial: TrialResult}}}`` (the rows of ``ROWS`` and ``CLASSIC``)."""
+    dirs = [Path(d) for d in dirs]
+    if len(dirs) < 2:
+        raise ValueError(f"leave one dataset out needs at least two datasets, got {[str(d) for d in dirs]}")
+    results = {}
+    for left in dirs:
+        train = [d for d in dirs if d != left]
+        model_dir = Path(out_dir) / f"without_{left.name}" / "models"
+        t0 = time.perf_counter()
+        log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
+        run_training(load_config(config), data_dir=[str(d) for d in train] if len(train) > 1 else str(train[0]),
+                     out=model_dir, verbose=verbose)
+        index = DatasetIndex.from_dir(left)
+        names = index.select(None)
+        per = models_transfer(model_dir, index)
+        per[TOGGLING_CORE] = toggling_core_results(model_dir, index, names)
+        results[left.name] = per
+        log.info(f"  {left.name}: {len(names)} trials scored in {time.perf_counter() - t0:.0f} s (training included)")
+    return results
+
+
+def _mean(res: dict, names) -> float:
+    return float(np.mean([res[n].errors["total"] for n in names])) if names else float("nan")
+
+
+def _vs_core(per: dict, learned: str, names) -> str:
+    core = CORE_OF[learned]
+    d = [per[learned][n].errors["total"] - per[core][n].errors["total"] for n in names]
+    if len(d) < 2:
+        return ""
+    t = paired_test(d)
+    rel = 100.0 * (_mean(per[learned], names) / _mean(per[core], names) - 1.0)
+    return f"{rel:+.1f} % · {t['wins']}/{t['ties']}/{t['losses']} · p {t['p']:.2g}"
+
+
+def lodo_table(results: dict, dirs, command: str, trained_on: str = "every other dataset") -> str:
+    """Markdown: per left-out dataset, mean total RMSE [°] per group (all trials first) of the
+    learned filters, their cores, Madgwick and VQF; for each learned filter the change against
+    its core (relative mean, wins / ties / losses per trial, Wilcoxon p)."""
+    by_name = {Path(d).name: Path(d) for d in dirs}
+    lines = [f"*Generated by `{command}` on {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC. "
+             "Do not edit: rerun the command.*", "",
+             f"Each dataset is scored with models and gains trained on {trained_on} (never on it). Mean total "
+             "RMSE [°] (BROAD's metric) over the trials of each group. *vs core*: the learned filter against its "
+             "core with learning off (`vqf_core` = VQF's defaults for the learned VQF; `toggling_core` = the toggling "
+             "CF's gain-search start with every learned term off), as the relative change of the mean, wins / ties / "
+             f"losses per trial (tie: |Δ| < {TIE_DEG}°) and the two-sided Wilcoxon signed-rank p.", ""]
+    for ds, per in results.items():
+        index = DatasetIndex.from_dir(by_name[ds])
+        names = sorted(per[VQF_TOGGLING])
+        groups = [("all", names)] + [(g, [n for n in members if n in per[VQF_TOGGLING]])
+                                     for g, members in sorted(index.groups.items())]
+        groups = [(g, m) for g, m in groups if m]
+        lines += [f"## Left out: {ds} ({len(names)} trials)", "",
+                  "| group | trials | " + " | ".join(f"`{r}`" for r in ROWS) + " | learned VQF vs core | "
+                  "toggling CF vs core |", "|---" * (len(ROWS) + 4) + "|"]
+        for g, members in groups:
+            cells = [f"{_mean(per[r], members):.2f}" for r in ROWS]
+            lines.append(f"| {g} | {len(members)} | " + " | ".join(cells) + f" | {_vs_core(per, VQF_TOGGLING, members)}"
+                         f" | {_vs_core(per, TOGGLING, members)} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def lodo_json(results: dict) -> dict:
+    """dataset -> filter -> trial -> {"total", "heading", "inclination"}: the tables' source numbers."""
+    return {ds: {f: {n: {k: r.errors[k] for k in ("total", "heading", "inclination")} for n, r in res.items()}
+                 for f, res in per.items()} for ds, per in results.items()}

@@ -67,7 +67,7 @@ CODE_MAX = 32 * 1024
 def _vqf_settings(class_names, use_mag):
     """Fixed (not learned) per-state values that exercise every step: distinct τ and rest
     thresholds per state, a confidence floor, the predicted-disturbance heading gain (9D), noise
-    removal on (acc 9D off, so the η̂_a trees are dropped)."""
+    removal on (acc 9D off, so the η̂_a trees are dropped), the followed modulation (9D)."""
     from togglecf.filters.vqf_toggling import VQFTogglingSettings
 
     n = len(class_names)
@@ -76,8 +76,9 @@ def _vqf_settings(class_names, use_mag):
     sigma = (0.3, 0.03, 0.1, 0.5, 0.05, 0.2)[:n]
     rest_gyr = (4.0, 1.0, 2.0, 8.0, 3.0, 1.5)[:n]
     rest_acc = (1.0, 0.25, 0.5, 2.0, 0.8, 0.3)[:n]
-    extra = (dict(noise_weight_acc=0.0, noise_weight_mag=0.5, mag_disturbance_scale=3.0) if use_mag
-             else dict(noise_weight_acc=0.5))
+    # 9D: the followed modulation (modulation_tau, TCF_VQFT_FOLLOW 1); 6D: at once (TCF_VQFT_FOLLOW 0)
+    extra = (dict(noise_weight_acc=0.0, noise_weight_mag=0.5, mag_disturbance_scale=3.0, modulation_tau=3.0)
+             if use_mag else dict(noise_weight_acc=0.5))
     return VQFTogglingSettings(states=tuple(class_names), tau_acc_states=tau_acc, tau_mag_states=tau_mag,
                                bias_sigma_motion_states=sigma, rest_th_gyr_states=rest_gyr,
                                rest_th_acc_states=rest_acc, confidence_floor=0.3, **extra)
@@ -160,9 +161,12 @@ def test_c_matches_python_in_loop(exported, model_dir, trial, mode):
     close = np.all(np.abs(C[ok, :k] - P[ok, :k]) <= 1e-4 + 1e-4 * np.abs(P[ok, :k]), axis=1)
     assert close.mean() >= tol_close, f"only {close.mean():.3%} of the samples hold the same prediction"
     # τ_acc in use follows the held prediction (step 2, recomputed only when it changes): equal
-    # to float32 rounding except around the flipped hops
+    # to float32 rounding except around the flipped hops. Followed (modulation_tau, 9D here) a flipped
+    # hop moves τ by up to (hop / modulation_tau) · Δln τ ≈ 3 % · 2 and fades over seconds, so the
+    # median carries the flips: 0.2 % measured on the mini cut, bound 1 %
     tau_py, tau_c = py.diagnostics["tau_acc"], dc["tau_acc"]
-    np.testing.assert_allclose(np.median(np.abs(tau_c - tau_py) / tau_py), 0.0, atol=1e-5)
+    followed = f.settings.modulation_tau > 0
+    np.testing.assert_allclose(np.median(np.abs(tau_c - tau_py) / tau_py), 0.0, atol=1e-2 if followed else 1e-5)
 
 
 @pytest.mark.parametrize("mode", ["9d", "6d"])
@@ -183,8 +187,11 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
     qc, dc = cv.run_vqft_harness(exe, trial.gyr, trial.acc, mag, predictions=P, diagnostics=True)
     ang = _angles_deg(qc, ref.quat)
     assert ang.max() <= ARITH_TOL[key], f"{mode}: max {ang.max():.5f}°"
+    # followed (modulation_tau, 9D): C's first-order recursion rounds ln τ to float32 every sample (ulp
+    # 2.4e-7 at ln τ ≈ 2-3) and carries it over the ~1/k samples of a time constant: 3.6e-6 measured
+    rtol = 2e-5 if f.settings.modulation_tau > 0 else 2e-6
     for name in ("tau_acc", "tau_mag", "trust"):
-        np.testing.assert_allclose(dc[name], ref.diagnostics[name], rtol=2e-6, atol=2e-6, err_msg=name)
+        np.testing.assert_allclose(dc[name], ref.diagnostics[name], rtol=rtol, atol=2e-6, err_msg=name)
     np.testing.assert_array_equal(dc["rest"], ref.diagnostics["rest"])
 
 

@@ -18,6 +18,7 @@ from togglecf.data.broad import (
     load_trial,
     min_samples,
     resolve_data_dir,
+    short_trial_name,
 )
 from togglecf.simulate import imu_from_orientation, random_smooth_trajectory
 
@@ -299,3 +300,11 @@ def test_atomic_writes_have_normal_permissions(tmp_path):
     os.umask(mask)
     assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask  # not mkstemp's 0600
     assert p.read_text() == "hello" and [q.name for q in p.parent.iterdir()] == ["x.txt"]  # no temp file left
+
+
+def test_short_trial_names_keep_what_tells_trials_apart():
+    # the RANSAC log and the CV table cut every name at its first underscore: all phone trials were "tyrex"
+    assert short_trial_name("02_undisturbed_slow_rotation_B") == "02"
+    assert short_trial_name("broad/02_undisturbed_slow_rotation_B") == "broad/02"
+    assert short_trial_name("tyrex_nexus5/Thibaud_Nexus5_NoDist_Texting") == "tyrex_nexus5/Thibaud_Nexus5_NoDist_Texting"
+    assert short_trial_name("Jakob_iPhone4S_NoDist_RunningHand") == "Jakob_iPhone4S_NoDist_RunningHand"

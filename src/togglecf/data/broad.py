@@ -31,7 +31,7 @@ __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
     "check_evaluable", "MultiIndex", "open_index", "resolve_data_dirs", "trial_fields", "REQUIRED_FIELDS",
-    "OPTIONAL_FIELDS",
+    "OPTIONAL_FIELDS", "short_trial_name",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -203,6 +203,15 @@ class Trial:
 
 
 # ------------------------------------------------------------------------------------------ loading
+
+def short_trial_name(name: str) -> str:
+    """A trial's name for logs and narrow tables: BROAD's numbered names by their number
+    (``02_undisturbed_slow_rotation_B`` -> ``02``), other names whole, a dataset prefix kept
+    (``broad/02``, ``tyrex_nexus5/Thibaud_Nexus5_NoDist_Texting``)."""
+    prefix, sep, local = name.rpartition("/")
+    head = local.split("_")[0]
+    return prefix + sep + (head if head.isdigit() else local)
+
 
 def load_trial(path, groups=(), check_units: bool = True, name: str | None = None) -> Trial:
     """Read one BROAD trial from ``.hdf5`` or ``.mat`` (``name``: default the file's stem).

@@ -125,9 +125,9 @@ int main(void) {
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_vqft_t)`` as documented in ``tcf_vqf_toggling.h``: the core's 532 bytes, the
     features ``4 · (37 + 12 L + S)`` (ring 12 L; EMA references 10, candidate field 5, previous acc
-    3, last-sample features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (16 + S)``
-    (modulation 7, diagnostics 3, the last prediction S + 6)."""
-    return 532 + 4 * (37 + 12 * int(window) + int(n_classes)) + 4 * (16 + int(n_classes))
+    3, last-sample features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (21 + S)``
+    (modulation 7, diagnostics 3, the last prediction S + 6, the followed modulation 5)."""
+    return 532 + 4 * (37 + 12 * int(window) + int(n_classes)) + 4 * (21 + int(n_classes))
 
 
 def _c_string(s: str) -> str:
@@ -185,6 +185,10 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, filt, window: i
 #define TCF_VQFT_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}   /* w_m of step 4 */
 #define TCF_VQFT_NOISE_ACC {1 if s.noise_weight_acc != 0 else 0}   /* 0: w_a = 0, step 4 leaves acc as is (a - 0 eta = a) */
 #define TCF_VQFT_NOISE_MAG {1 if s.noise_weight_mag != 0 else 0}   /* 0: w_m = 0, step 4 leaves mag as is */
+/* modulation_tau {s.modulation_tau:g} s: ln tau_acc, ln tau_mag follow the blended values with this per-sample gain
+ * (1 - exp(-Ts / modulation_tau) at TCF_FS); TCF_VQFT_FOLLOW 0: at once (modulation_tau 0) */
+#define TCF_VQFT_FOLLOW {1 if p.modulation_gain < 1.0 else 0}
+#define TCF_VQFT_MODULATION_GAIN {c_float(p.modulation_gain)}
 
 #endif /* TCF_CONFIG_H */
 """

@@ -15,6 +15,10 @@
 #error "tcf_vqf_toggling.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
 #endif
 
+#if !defined(TCF_VQFT_FOLLOW) || !defined(TCF_VQFT_MODULATION_GAIN)
+#error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_GAIN (re-export it)"
+#endif
+
 #if !defined(TCF_VQFT_NOISE_ACC) || !defined(TCF_VQFT_NOISE_MAG)
 #error "tcf_config.h must define TCF_VQFT_NOISE_ACC and TCF_VQFT_NOISE_MAG (re-export it)"
 #endif
@@ -78,9 +82,16 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
     lg = lam * mg + (1.0f - lam) * lg;
     lc = lam * mc + (1.0f - lam) * lc;
   }
+  f->trust = lam;
+  f->follow[0] = la;  /* the targets of tcf_vqft_follow */
+  f->follow[1] = lm;
+  f->follow[4] = 1.0f;
+#if TCF_VQFT_FOLLOW
+  la = f->follow[2];  /* tau_acc, tau_mag: the followed values (tcf_vqft_follow moves them) */
+  lm = f->follow[3];
+#endif
   f->tau_acc = expf(la);
   f->tau_mag = expf(lm);
-  f->trust = lam;
   tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, expf(ls), &f->mod);  /* step 3 */
   f->mod.rest_th_gyr_sq = expf(2.0f * lg);
   f->mod.rest_th_acc_sq = expf(2.0f * lc);
@@ -89,10 +100,34 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
     const float *em = pred + TCF_N_CLASSES + 3;
     float e = (em[0] * em[0] + em[1] * em[1] + em[2] * em[2])
               / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
-    if (e >= 0.0f) f->mod.k_mag = f->mod.k_mag / (1.0f + e);
+    if (e >= 0.0f) {
+      f->follow[4] = 1.0f + e;
+      f->mod.k_mag = f->mod.k_mag / (1.0f + e);
+    }
   }
 #endif
 }
+
+#if TCF_VQFT_FOLLOW
+/* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets; the
+   tau_acc low-pass coefficients while ln tau_acc moves, k_mag (with the back-off) every sample */
+static void tcf_vqft_follow(tcf_vqft_t *f) {
+  float *w = f->follow;
+  tcf_vqf_mod_t m;
+  int j;
+  for (j = 0; j < 2; ++j) {
+    if (w[2 + j] != w[j]) {
+      w[2 + j] += TCF_VQFT_MODULATION_GAIN * (w[j] - w[2 + j]);
+      if (fabsf(w[j] - w[2 + j]) < 1e-6f) w[2 + j] = w[j];  /* float32: the Python filter snaps at 1e-9 */
+    }
+  }
+  f->tau_acc = expf(w[2]);
+  f->tau_mag = expf(w[3]);
+  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);
+  f->mod.acc_lp = m.acc_lp;
+  f->mod.k_mag = m.k_mag / w[4];
+}
+#endif
 
 /* vqf_toggling_step with the held prediction f->feat.pred */
 static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
@@ -103,6 +138,9 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   int j, eta_ok = 1;
 #endif
   if (tcf_vqft_changed(f, pred)) tcf_vqft_modulate(f, pred);
+#if TCF_VQFT_FOLLOW
+  tcf_vqft_follow(f);
+#endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
   for (j = 0; j < 6; ++j)
     if (!isfinite(eta[j])) eta_ok = 0;
@@ -126,6 +164,9 @@ int tcf_vqft_init(tcf_vqft_t *f) {
   f->tau_acc = p.tau_acc;
   f->tau_mag = p.tau_mag;
   f->trust = 0.0f;
+  f->follow[0] = f->follow[2] = TCF_VQFT_LN_TAU_ACC_CORE;
+  f->follow[1] = f->follow[3] = TCF_VQFT_LN_TAU_MAG_CORE;
+  f->follow[4] = 1.0f;
   return 0;
 }
 

@@ -10,6 +10,8 @@
  *   time constants  ln tau = lambda sum_s (p_s / sum p) ln tau_s + (1 - lambda) ln tau_core
  *                   for tau_acc, tau_mag and sigma_motion (per-state values TCF_VQFT_LN_*_INIT)
  *   coefficients    tcf_vqf_mod_from (the core's formulas, float32)
+ * (with modulation_tau > 0, TCF_VQFT_FOLLOW: ln tau_acc and ln tau_mag follow these values
+ * with a first-order low-pass, gain TCF_VQFT_MODULATION_GAIN per sample)
  * then step 4 (noise removal a - w_a eta_a, m - w_m eta_m) and step 5, the VQF core
  * (tcf_vqf.{h,c}, tcf_vqf_update_mod) with those coefficients. No prediction (NaN: before the
  * first full window, or the window was out of the training range) -> the core's own settings.
@@ -42,11 +44,13 @@ typedef struct tcf_vqft {
   tcf_vqf_mod_t mod;       /* coefficients in use (steps 1-3 of the last prediction change) */
   float last_p[TCF_N_CLASSES + 6];  /* the prediction the modulation was made from (NaN: none) */
   float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
+  float follow[5];  /* modulation_tau: target ln tau_acc, ln tau_mag; the followed ones; heading back-off divisor */
 } tcf_vqft_t;
 
 /* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,
-   the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics */
-#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (16 + TCF_N_CLASSES))
+   the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics, 5 of the
+   followed modulation */
+#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (21 + TCF_N_CLASSES))
 
 /* Reset: the core's initial state and settings (tcf_vqf_config.h), empty window, no prediction.
    Returns 0, or -1 if the core refuses the settings (not for an exported configuration). */

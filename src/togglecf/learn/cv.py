@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from togglecf.data.broad import short_trial_name
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.dataset import WindowData
 from togglecf.learn.fitting import fit_all, score_fold
@@ -100,10 +101,6 @@ def cross_validate(cfg, data: WindowData, schema, class_names, backend=None):
     return out, oof
 
 
-def _short(name: str) -> str:
-    return name.split("_")[0]
-
-
 def format_cv_table(cv: dict, class_names) -> str:
     head = (f"{'fold':>7} {'test trials':<22} {'n_test':>7} | {'balacc':>6} {'(maj)':>6} {'F1':>6} {'(maj)':>6} "
             f"{'AUC':>6} {'(maj)':>6} | {'accRMSE':>7} {'(zero)':>7} {'R2':>6} {'(zero)':>7} | "
@@ -119,7 +116,7 @@ def format_cv_table(cv: dict, class_names) -> str:
                 f"{g['rmse']:7.3f} {gz['rmse']:7.3f} {g['r2']:6.3f} {gz['r2']:7.3f}")
 
     for f in cv["folds"]:
-        lines.append(row(str(f["fold"]), ",".join(_short(t) for t in f["test_trials"])[:22], f, f["n_test"]))
+        lines.append(row(str(f["fold"]), ",".join(short_trial_name(t) for t in f["test_trials"])[:22], f, f["n_test"]))
     lines.append("-" * len(head))
     lines.append(row("overall", "pooled over folds", cv["overall"], cv["overall"]["classifier"]["n"]))
     conf = np.array(cv["overall"]["classifier"]["confusion"])

@@ -20,7 +20,7 @@ import xgboost
 
 from togglecf import __version__
 from togglecf.core.io import atomic_write_text
-from togglecf.data.broad import open_index, trial_fields
+from togglecf.data.broad import open_index, short_trial_name, trial_fields
 from togglecf.features.windows import FeatureSettings, feature_schema
 from togglecf.learn.compiled import hold_predictions
 from togglecf.learn.cv import cross_validate, format_cv_table
@@ -37,10 +37,6 @@ from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_ga
 __all__ = ["run_training"]
 
 log = logging.getLogger(__name__)
-
-
-def _short(name: str) -> str:
-    return name.split("_")[0]
 
 
 def _versions() -> dict:
@@ -137,7 +133,7 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     say(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
         f"in {timing['dataset_s']:.1f} s")
     say("RANSAC inlier fraction per trial (" + ("applied" if label_settings.ransac else "not applied") + "): "
-        + ", ".join(f"{_short(n)} {p['inlier_fraction']:.4f}" for n, p in data.per_trial.items()))
+        + ", ".join(f"{short_trial_name(n)} {p['inlier_fraction']:.4f}" for n, p in data.per_trial.items()))
     result = {"out": str(out_dir), "timing": timing}
     oof = None
     if cv:

@@ -1,0 +1,90 @@
+"""Leave one dataset out (togglecf.run.lodo, `make run` step 4) and the gain search's objective that
+no dataset can dominate (togglecf.toggling.gains.objective_value)."""
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from togglecf.run.config import load_config
+from togglecf.run.lodo import CORE_OF, ROWS, dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
+from togglecf.toggling.gains import objective_value, trial_datasets
+
+
+def test_worst_dataset_log_ratio_by_hand():
+    # dataset a: ratios 0.5 and 2 -> mean ln = 0; dataset b: ratio 1.1 on its one trial -> ln 1.1
+    start = np.array([2.0, 1.0, 10.0])
+    rmse = np.array([1.0, 2.0, 11.0])
+    ds = np.array(["a", "a", "b"])
+    worst = objective_value("worst_dataset_log_ratio", rmse, start, ds)
+    assert worst == pytest.approx(math.log(1.1) + 1e-3 * 0.5 * (0.0 + math.log(1.1)))
+    assert objective_value("mean_rmse", rmse, start, ds) == pytest.approx(14.0 / 3)
+    # at the start every ratio is 1: the objective is 0, and a change that helps one dataset by 20 % but
+    # hurts the other by 1 % is worse than the start (the mean RMSE would have taken it)
+    assert objective_value("worst_dataset_log_ratio", start, start, ds) == 0.0
+    trade = np.array([1.6, 0.8, 10.1])
+    assert objective_value("worst_dataset_log_ratio", trade, start, ds) > 0.0
+    assert objective_value("mean_rmse", trade, start, ds) < objective_value("mean_rmse", start, start, ds)
+    # a trial without a scored sample (NaN) is left out, not a NaN objective
+    assert np.isfinite(objective_value("worst_dataset_log_ratio", np.array([1.0, np.nan, 11.0]), start, ds))
+    with pytest.raises(ValueError, match="objective"):
+        objective_value("median", rmse, start, ds)
+
+
+def test_trial_datasets_from_names():
+    class T:
+        def __init__(self, name):
+            self.name = name
+
+    assert list(trial_datasets([T("broad/01_x"), T("tyrex_nexus5/A_B"), T("05_plain")])) == [
+        "broad", "tyrex_nexus5", ""]
+
+
+def test_dataset_dirs_finds_siblings_in_broads_layout(tmp_path):
+    for d in ("broad", "zeta", "alpha", "not_data"):
+        (tmp_path / d).mkdir()
+    for d in ("broad", "zeta", "alpha"):
+        (tmp_path / d / "trials.json").write_text("{}")
+    assert [p.name for p in dataset_dirs(tmp_path / "broad")] == ["broad", "alpha", "zeta"]
+
+
+TINY_LEARNING_OFF = {
+    "run": {"cv_folds": 2},
+    "classifier": {"n_estimators": 8, "max_depth": 3},
+    "regressor": {"n_estimators": 4, "max_depth": 3},
+    "gains": {"modes": ["9d", "vqf_9d"], "tau": [11.66], "output_tau": [0.0], "bias_tau": [3.498],
+              "bias_gate": [0.05], "mag_disturbance_scale": [0.0], "confidence_floor": [0.0]},
+}
+#: every learned VQF value at the core's: learning off, whatever the models predict
+VQF_OFF = {"tau_acc": [3.0], "tau_mag": [9.0], "confidence_floor": [0.0], "mag_disturbance_scale": [0.0]}
+
+
+@pytest.mark.slow
+def test_leave_one_dataset_out_on_two_datasets(mini_index, tmp_path):
+    """Two copies of the mini trials as two datasets: each is scored with models trained on the other only.
+    With every learned VQF value at the core's, the learned VQF is its core on every trial of both (the
+    pairing of the table is right, and the followed modulation changes nothing when nothing is learned)."""
+    dirs = []
+    for name in ("first", "second"):
+        shutil.copytree(mini_index.root, tmp_path / name)
+        dirs.append(tmp_path / name)
+    cfg = load_config()
+    for section, values in TINY_LEARNING_OFF.items():
+        cfg[section].update(values)
+    cfg["gains"]["vqf"] = {**cfg["gains"]["vqf"], **VQF_OFF}
+    results = leave_one_dataset_out(dirs, tmp_path / "lodo", cfg, verbose=False)
+    assert list(results) == ["first", "second"]
+    for ds, per in results.items():
+        assert set(ROWS) <= set(per)
+        names = sorted(per["vqf_toggling"])
+        assert names == sorted(mini_index.available)
+        for n in names:
+            learned, core = per["vqf_toggling"][n].errors["total"], per[CORE_OF["vqf_toggling"]][n].errors["total"]
+            assert abs(learned - core) < 1e-6, (ds, n, learned, core)
+        assert (tmp_path / "lodo" / f"without_{ds}" / "models" / "gains.json").is_file()
+    text = lodo_table(results, dirs, "cmd")
+    assert "## Left out: first (3 trials)" in text and "## Left out: second (3 trials)" in text
+    first_all = next(ln for ln in text.splitlines() if ln.startswith("| all |"))
+    assert "+0.0 % · 0/3/0" in first_all  # learned VQF vs core: three ties
+    assert lodo_json(results)["first"]["vqf_core"][names[0]]["total"] == pytest.approx(
+        results["first"]["vqf_core"][names[0]].errors["total"])

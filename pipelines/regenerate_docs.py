@@ -2,7 +2,7 @@
 
     python pipelines/regenerate_docs.py [--study reports/study] [--bench [--quick]] [--bench-dask]
                                         [--sweep build/embedded/default/sweep] [--models models/default]
-                                        [--out docs/results]
+                                        [--lodo reports/lodo] [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
 ``pymdownx.snippets`` (``--8<-- "docs/results/study_summary.md"``). Each file starts with a line
@@ -25,6 +25,7 @@ placeholder saying how to produce it when there is no file yet):
   ``../filter/filter_report.json`` of the export beside it when present): ``sweep.md`` and
   ``embedded_sizes.md``.
 * ``--models DIR`` (default ``models/default``; read: ``cv_table.txt``): ``train_cv.md``.
+* ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
 * always: ``filter_defaults.md``, every filter's settings and defaults, from the code.
 """
 from __future__ import annotations
@@ -162,7 +163,7 @@ def study_tables(study: Path, out: Path, command: str) -> None:
     frows = []
     for fi in res.get("folds", []):
         gains = fi.get("gains", {})
-        g = ", ".join(f"{k} {_compact(v)}" for k, v in gains.items() if k != "train_objective_deg")
+        g = ", ".join(f"{k} {_compact(v)}" for k, v in gains.items() if k not in ("train_objective", "train_objective_deg"))
         tagp = "; ".join(f"{k} {_compact(v.get('params', v))}" for k, v in fi.get("baseline_tagp", {}).items())
         frows.append([fi.get("fold"), ", ".join(t.split("_")[0] for t in fi.get("test", [])), g, tagp])
     write(out, "study_folds.md", head + "\nPer fold: the test trials (by number), the toggling CF's gains learned "
@@ -449,6 +450,8 @@ def main(argv=None) -> int:
     p.add_argument("--transfer", default=None, metavar="DIR",
                    help="the cross-dataset outputs of `make run` (default: reports/transfer if present; with "
                         "reports/study_both)")
+    p.add_argument("--lodo", default=None, metavar="DIR",
+                   help="the leave-one-dataset-out output of `make run` (default: reports/lodo if present)")
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -470,6 +473,14 @@ def main(argv=None) -> int:
                         f"{SCRIPT} --transfer {_shown(transfer) if args.transfer else 'reports/transfer'}")
     elif args.transfer:
         p.error(f"{transfer}: not found (run `make run`)")
+
+    lodo = Path(args.lodo) if args.lodo else REPO / "reports" / "lodo"
+    if (lodo / "lodo.md").is_file():
+        write(out, "lodo.md", (lodo / "lodo.md").read_text())
+    else:
+        if args.lodo:
+            p.error(f"{lodo}: no lodo.md (run `make run` with at least two datasets in BROAD's layout)")
+        placeholder(out, "lodo.md", "`reports/lodo/lodo.md`", "Run `make run` with the phone data beside BROAD.")
 
     if args.spread:
         dirs = [Path(d) for d in args.spread.split(",") if d]

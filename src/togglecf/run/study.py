@@ -232,7 +232,7 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
         info["gains"] = {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
                          "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                          "noise_weight_acc": gains9.noise_weight_acc, "noise_weight_mag": gains9.noise_weight_mag,
-                         "confidence_floor": gains9.confidence_floor, "train_objective_deg": hist[-1][2]}
+                         "confidence_floor": gains9.confidence_floor, "train_objective": hist[-1][2]}
         log.info(f"  models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}")
         # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
         preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}

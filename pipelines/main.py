@@ -16,7 +16,8 @@ cross-dataset protocol.
    filters beside their cores with learning off, per dataset and group (``togglecf.run.lodo``)
    -> reports/lodo/lodo.md (9D: the learned filters' 9D gains; the harm to find was in the heading).
 
-    python pipelines/main.py [--skip-study]    # --skip-study: steps 2-3 on an existing reports/study
+    python pipelines/main.py [--skip-study]    # --skip-study: steps 2-4 on an existing reports/study
+    python pipelines/main.py --lodo-only       # step 4 alone
 """
 import argparse
 import logging
@@ -67,14 +68,18 @@ def _write(name, per, index, what, command):
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-3 only)")
+    p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-4 only)")
+    p.add_argument("--lodo-only", action="store_true", help="step 4 alone: leave one dataset out")
     args = p.parse_args(argv)
     broad = data_dir()
+    command = "python pipelines/main.py"
+    if args.lodo_only:
+        leave_datasets_out(broad, command)
+        return 0
     if not args.skip_study:
         run_study(load_study_config(), data_dir=broad, out_dir=STUDY_DIR)
     elif not (STUDY_DIR / "results.json").is_file():
         p.error(f"--skip-study: no study in {STUDY_DIR} (run without --skip-study first)")
-    command = "python pipelines/main.py"
 
     log.info("rate: the held-out trials 3x decimated, each with the models of its fold")
     dec = write_decimated(DatasetIndex.from_dir(broad), Path("build/data/broad_decimated_3x"), 3)

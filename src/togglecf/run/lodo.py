@@ -8,7 +8,9 @@ and every trial of the dataset left out is scored:
 * each learned filter's **core with learning off**: for the learned VQF the VQF core at VQF's
   defaults (``vqf_core``, what it modulates), for the toggling CF the same filter at its gain
   search's starting point with every learned term off (no prediction: ``TOGGLING_CORE``);
-* the classic filters of ``run.transfer.CLASSIC`` at their documented defaults.
+* the classic filters of ``run.transfer.CLASSIC`` at their documented defaults, and Madgwick at its
+  TAGP on the training datasets (``MADGWICK_TAGP``, BROAD's β grid of the study config): the
+  reference the toggling CF must reach on data it never saw.
 
 ``lodo_table`` reports per dataset and per group, with a paired per-trial comparison of each
 learned filter against its core (wins / ties / losses, Wilcoxon p): a mean can hide a trade.
@@ -22,29 +24,33 @@ from pathlib import Path
 
 import numpy as np
 
-from togglecf.data.broad import DatasetIndex
+from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import trial_errors
-from togglecf.registry import TOGGLING, VQF_TOGGLING
+from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
 from togglecf.run.config import load_config
-from togglecf.run.scoring import TrialResult
+from togglecf.run.scoring import TrialResult, score_trial
+from togglecf.run.study import load_study_config
+from togglecf.run.sweep import grid_search
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer
 from togglecf.toggling.gains import GainSearch
 
-__all__ = ["TOGGLING_CORE", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_results",
+__all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_results",
            "lodo_table", "lodo_json"]
 
 log = logging.getLogger(__name__)
 
 #: row name of the toggling CF with learning off (its gain search's start, no prediction used)
 TOGGLING_CORE = "toggling_core"
+#: row name of Madgwick at its TAGP on the training datasets
+MADGWICK_TAGP = "madgwick_tagp"
 #: each learned filter's core with learning off (the row it is compared with)
 CORE_OF = {VQF_TOGGLING: "vqf_core", TOGGLING: TOGGLING_CORE}
 #: rows of the tables, in order
-ROWS = (VQF_TOGGLING, "vqf_core", TOGGLING, TOGGLING_CORE, "madgwick")
+ROWS = (VQF_TOGGLING, "vqf_core", TOGGLING, TOGGLING_CORE, MADGWICK_TAGP, "madgwick")
 
 
 def dataset_dirs(first: Path) -> list[Path]:
@@ -76,7 +82,17 @@ def toggling_core_results(model_dir, index: DatasetIndex, names) -> dict:
     return out
 
 
-def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True) -> dict:
+def madgwick_tagp_results(train_dirs, index: DatasetIndex, names, jobs: int | None = None) -> tuple[dict, dict]:
+    """(trial -> ``TrialResult`` on the left-out ``index``, the β) of Madgwick at its TAGP over the study
+    config's grid (``[baselines.madgwick]``) on every trial of ``train_dirs``."""
+    grid = load_study_config().baselines["madgwick"]
+    train = open_index([str(d) for d in train_dirs] if len(train_dirs) > 1 else str(train_dirs[0]))
+    best = grid_search(train, train.select(None), "madgwick", grid, jobs=jobs).params
+    spec = FilterSpec("madgwick", params=best)
+    return {n: score_trial(index.load(n), spec)[0] for n in names}, best
+
+
+def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs: int | None = None) -> dict:
     """For each directory of ``dirs`` (at least two): train on all the others into
     ``out_dir/without_<name>/models`` and score every trial of the one left out. Returns
     ``{dataset name: {filter: {trial: TrialResult}}}`` (the rows of ``ROWS`` and ``CLASSIC``)."""
@@ -95,6 +111,8 @@ def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True) -> d
         names = index.select(None)
         per = models_transfer(model_dir, index)
         per[TOGGLING_CORE] = toggling_core_results(model_dir, index, names)
+        per[MADGWICK_TAGP], beta = madgwick_tagp_results(train, index, names, jobs)
+        log.info(f"  Madgwick's TAGP on {', '.join(d.name for d in train)}: {beta}")
         results[left.name] = per
         log.info(f"  {left.name}: {len(names)} trials scored in {time.perf_counter() - t0:.0f} s (training included)")
     return results
@@ -125,7 +143,8 @@ def lodo_table(results: dict, dirs, command: str, trained_on: str = "every other
              "RMSE [°] (BROAD's metric) over the trials of each group. *vs core*: the learned filter against its "
              "core with learning off (`vqf_core` = VQF's defaults for the learned VQF; `toggling_core` = the toggling "
              "CF's gain-search start with every learned term off), as the relative change of the mean, wins / ties / "
-             f"losses per trial (tie: |Δ| < {TIE_DEG}°) and the two-sided Wilcoxon signed-rank p.", ""]
+             f"losses per trial (tie: |Δ| < {TIE_DEG}°) and the two-sided Wilcoxon signed-rank p. `madgwick_tagp`: "
+             "Madgwick at its TAGP on the training datasets (BROAD's β grid); `madgwick`: at BROAD's TAGP.", ""]
     for ds, per in results.items():
         index = DatasetIndex.from_dir(by_name[ds])
         names = sorted(per[VQF_TOGGLING])

@@ -109,18 +109,14 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
 }
 
 #if TCF_VQFT_FOLLOW
-/* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets; the
-   tau_acc low-pass coefficients while ln tau_acc moves, k_mag (with the back-off) every sample */
+/* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets, then the
+   tau_acc low-pass coefficients and k_mag (with the back-off) from them. Every sample, without the Python
+   filter's snap at 1e-9: in float32 the step stalls within an ulp of the target anyway */
 static void tcf_vqft_follow(tcf_vqft_t *f) {
   float *w = f->follow;
   tcf_vqf_mod_t m;
-  int j;
-  for (j = 0; j < 2; ++j) {
-    if (w[2 + j] != w[j]) {
-      w[2 + j] += TCF_VQFT_MODULATION_GAIN * (w[j] - w[2 + j]);
-      if (fabsf(w[j] - w[2 + j]) < 1e-6f) w[2 + j] = w[j];  /* float32: the Python filter snaps at 1e-9 */
-    }
-  }
+  w[2] += TCF_VQFT_MODULATION_GAIN * (w[0] - w[2]);
+  w[3] += TCF_VQFT_MODULATION_GAIN * (w[1] - w[3]);
   f->tau_acc = expf(w[2]);
   f->tau_mag = expf(w[3]);
   tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);

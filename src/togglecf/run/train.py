@@ -118,7 +118,8 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
         if verbose:
             log.info(msg)
 
-    say(f"togglecf train: {len(names)} trials from {index.root} -> {out_dir}"
+    roots = _data_dir_meta(index)
+    say(f"togglecf train: {len(names)} trials from {', '.join(roots) if isinstance(roots, list) else roots} -> {out_dir}"
         + (f" on {backend.describe()}" if backend.name == "dask" else ""))
     t0 = time.perf_counter()
     if dataset is not None:

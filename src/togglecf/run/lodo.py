@@ -150,7 +150,7 @@ def lodo_table(results: dict, dirs, command: str, trained_on: str = "every other
         names = sorted(per[VQF_TOGGLING])
         groups = [("all", names)] + [(g, [n for n in members if n in per[VQF_TOGGLING]])
                                      for g, members in sorted(index.groups.items())]
-        groups = [(g, m) for g, m in groups if m]
+        groups = groups[:1] + [(g, m) for g, m in groups[1:] if m and len(m) < len(names)]  # "all" once
         lines += [f"## Left out: {ds} ({len(names)} trials)", "",
                   "| group | trials | " + " | ".join(f"`{r}`" for r in ROWS) + " | learned VQF vs core | "
                   "toggling CF vs core |", "|---" * (len(ROWS) + 4) + "|"]

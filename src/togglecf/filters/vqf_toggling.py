@@ -9,7 +9,9 @@ acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulat
 2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag,
    the motion-bias standard deviation σ_motion and the rest thresholds th_ω, th_a (a geometric
    blend: the probabilities mix rates, not seconds); each per-state value is bounded
-   (``TAU_ACC_RANGE`` ...), so no state switches a correction off
+   (``TAU_ACC_RANGE`` ...), so no state switches a correction off. With ``modulation_tau`` > 0,
+   ln τ_acc and ln τ_mag do not jump to these values but follow them with a first-order low-pass
+   of that time constant, every sample (``_follow``; why: ``VQFTogglingSettings``)
 3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag),
    W_motion = σ⁴/V + σ² and th² from the blended values, exactly as the core derives its own (B5);
    with a predicted magnetic disturbance (9D, σ_m > 0, the same law as the toggling CF's step 4)
@@ -155,6 +157,8 @@ O_MOD = 5 + len(VQFCoreFilter.state_names)
 O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
 O_LAST_P = O_NOW + 3
 O_FOLLOW = O_LAST_P + MAX_STATES + N_PRED_NOISE  # targets and followed ln τ_acc, ln τ_mag; the heading back-off
+#: the leading ``CoreModulation`` entries that ``_follow`` sets: the τ_acc low-pass coefficients and k_mag
+_N_FOLLOWED = CoreModulation._fields.index("k_mag") + 1
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
 N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
 
@@ -218,7 +222,7 @@ def modulate(state, p, pred):
         k_mag = k_mag / backoff
     mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
            math.exp(2.0 * lg), math.exp(2.0 * lc))
-    first = 0 if p.modulation_gain >= 1.0 else 6  # followed: τ_acc's coefficients and k_mag set by _follow
+    first = 0 if p.modulation_gain >= 1.0 else _N_FOLLOWED  # followed: τ_acc's coefficients and k_mag by _follow
     for i in range(first, len(mod)):
         state[O_MOD + i] = mod[i]
     state[O_FOLLOW], state[O_FOLLOW + 1], state[O_FOLLOW + 4] = la, lm, backoff

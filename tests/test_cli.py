@@ -125,5 +125,17 @@ def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, cap
         per_trial = pd.read_csv(out / "per_trial.csv", index_col=0)
         # a trained filter on a fast-rotation trial it never saw: far from the tens of degrees of a broken one
         assert per_trial.loc["07_undisturbed_fast_rotation_B", "total"] < 15.0
+    assert "in-sample" not in capsys.readouterr().err  # 07 was never seen: no warning
+    # scored on one of its own training trials (and a copy of it elsewhere): one warning line, the trial named
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    (copy / "trials.json").write_text((broad_index.root / "trials.json").read_text())
+    src = broad_index.available["24_disturbed_tapping_A"]
+    (copy / src.name).write_bytes(src.read_bytes())
+    for where in (data, ["--data", str(copy)]):
+        assert main(["evaluate", "--filter", "toggling", "--models", str(models), "--trials", "24", "--jobs", "1",
+                     *where]) == 0
+        warned = [ln for ln in capsys.readouterr().err.splitlines() if "in-sample" in ln]
+        assert len(warned) == 1 and "1 of the 1 trials" in warned[0] and "24_disturbed_tapping_A" in warned[0]
     assert main(["evaluate", "--filter", "toggling", "--param", "tau_acc=0.1", "--models", str(models), *data]) == 1
     assert "takes no --param" in capsys.readouterr().err

@@ -240,7 +240,7 @@ def test_cli_stream_from_file_and_stdin(tmp_path, capsys, monkeypatch):
     path = tmp_path / "imu.csv"
     path.write_bytes(b"t,gx,gy,gz,ax,ay,az,mx,my,mz\n" + data)
     argv = ["stream", "--input", str(path), "--units", "gyr=dps,acc=g,mag=uT", "--time-unit", "ms",
-            "--rate", "0", "--precision", "12", "--filter", "madgwick"]
+            "--rate", "0", "--precision", "12", "--filter", "madgwick", "--fs", str(FS)]
     assert _cli(argv) == 0
     cap = capsys.readouterr()
     lines = cap.out.splitlines()
@@ -257,4 +257,8 @@ def test_cli_stream_from_file_and_stdin(tmp_path, capsys, monkeypatch):
     assert capsys.readouterr().out == cap.out
 
     with pytest.raises(ValueError, match="unknown unit"):
-        _cli(["stream", "--input", str(path), "--units", "gyr=rpm"])
+        _cli(["stream", "--input", str(path), "--units", "gyr=rpm", "--fs", "100"])
+    # no silent rate: a 100-Hz file run at a guessed 285.714 Hz scales every time constant by 2.86
+    with pytest.raises(SystemExit):
+        _cli(["stream", "--input", str(path)])
+    assert "--fs" in capsys.readouterr().err

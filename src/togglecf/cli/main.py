@@ -27,6 +27,7 @@ from togglecf.parallel.backend import sweep_chunk_size
 from togglecf.registry import FILTER_NAMES, FilterSpec
 from togglecf.run.scoring import parse_grid
 from togglecf.run.sweep import ResultStore, format_failures, grid_search, journal_path, run_sweep
+from togglecf.toggling.load import training_trials_among
 
 
 def main(argv=None) -> int:
@@ -188,6 +189,8 @@ def cmd_evaluate(args):
     # validated here (settings, or the model directory and its gains) before any worker starts
     spec = FilterSpec(args.filter, params, models=args.models, use_mag=not args.six_d)
     params, settings = spec.as_params(), spec.settings
+    if spec.models:
+        _warn_in_sample(spec.models, index, names)
     with _sweep_context(args) as (backend, store, chunk):
         sweep = run_sweep(index, names, args.filter, [params], use_mag=not args.six_d, backend=backend, store=store,
                           chunk_size=chunk, on_error="report", desc="evaluate")
@@ -204,6 +207,15 @@ def cmd_evaluate(args):
                                                      failed_trials=sweep.failed, invalid_samples=sweep.invalid,
                                                      max_invalid_fraction=MAX_INVALID_FRACTION))
     return _report_failures(sweep.failed, [], index)
+
+
+def _warn_in_sample(model_dir, index, names) -> None:
+    """One line on stderr when trained models are scored on trials they were trained on."""
+    seen = training_trials_among(model_dir, {n: index.available[n] for n in names})
+    if seen:
+        shown = ", ".join(seen[:5]) + (f" and {len(seen) - 5} more" if len(seen) > 5 else "")
+        print(f"warning: {len(seen)} of the {len(names)} trials scored were used to train {model_dir} ({shown}): "
+              "their errors are in-sample, not held out", file=sys.stderr)
 
 
 def cmd_tune(args):

@@ -1,6 +1,7 @@
 """``togglecf stream``: run a filter live on IMU lines from a serial port, a file or stdin."""
 from __future__ import annotations
 
+import argparse
 import sys
 
 from togglecf.live.stream import OUTPUT_HEADER, TIME_UNITS, StreamConfig, StreamProcessor, file_chunks, serial_chunks
@@ -31,7 +32,8 @@ def cmd_stream(args):
 
 def add_stream_parser(subparsers):
     """``togglecf stream ...`` (wire into ``cli._parser``: ``add_stream_parser(sub)``)."""
-    sp = subparsers.add_parser("stream", help="live orientation from a serial IMU (or a CSV file / stdin)")
+    sp = subparsers.add_parser("stream", help="live orientation from a serial IMU (or a CSV file / stdin)",
+                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     src = sp.add_mutually_exclusive_group(required=True)
     src.add_argument("--port", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0 or COM3")
     src.add_argument("--input", metavar="FILE", help="read lines from a file, or - for stdin")
@@ -42,7 +44,10 @@ def add_stream_parser(subparsers):
                     help="input units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; acc: m/s2|g|mg; "
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
     sp.add_argument("--time-unit", choices=sorted(TIME_UNITS), default="s", help="unit of the timestamp t")
-    sp.add_argument("--fs", type=float, default=285.714, help="nominal sampling rate [Hz] (gap detection, first Δt)")
+    # required: every time constant is converted at this rate, and a wrong guess (BROAD's 285.714 Hz for a
+    # 100-Hz sensor) silently scales them all
+    sp.add_argument("--fs", type=float, required=True,
+                    help="the sensor's nominal sampling rate [Hz] (coefficients, gap detection, first Δt)")
     sp.add_argument("--rate", type=float, default=10.0, help="output lines per second of stream time (0: every sample)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="lines without magnetometer: t,gx,gy,gz,ax,ay,az")
     sp.add_argument("--max-gap", type=float, default=1.0, help="Δt [s] above which the time base restarts")

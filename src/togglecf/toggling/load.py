@@ -5,12 +5,13 @@ import hashlib
 import json
 from pathlib import Path
 
+from togglecf.core.io import file_sha256
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.toggling.gains import load_gains
 from togglecf.toggling.inloop import InLoopModels, ModelTogglingFilter, ModelVQFTogglingFilter
 
-__all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest"]
+__all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest", "training_trials_among"]
 
 #: content digest of a model directory -> its CompiledModels (flattening the trees takes ~1 s)
 _COMPILED_CACHE: dict = {}
@@ -51,3 +52,15 @@ def load_toggling_filter(model_dir, fs: float, use_mag: bool = True, kind: str =
     learned time constants) in 9D (``use_mag``) or 6D."""
     return IN_LOOP[kind](fs, load_gains(model_dir, use_mag=use_mag, kind=kind), models=load_compiled_models(model_dir),
                          use_mag=use_mag)
+
+
+def training_trials_among(model_dir, files: dict) -> list[str]:
+    """The names of ``files`` (trial name -> path) that the models of ``model_dir`` were trained
+    on: a file of the same name and content (sha256) as one its metadata lists, wherever it lies,
+    so that a score on them can be flagged as in-sample."""
+    meta = json.loads((Path(model_dir) / "metadata.json").read_text())
+    trained = {}
+    for v in meta.get("data_files", {}).values():
+        trained.setdefault(Path(v["file"]).name, set()).add(v.get("sha256"))
+    return [name for name, path in files.items()
+            if Path(path).name in trained and Path(path).is_file() and file_sha256(path) in trained[Path(path).name]]

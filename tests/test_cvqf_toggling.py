@@ -188,7 +188,7 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
     ang = _angles_deg(qc, ref.quat)
     assert ang.max() <= ARITH_TOL[key], f"{mode}: max {ang.max():.5f}°"
     # followed (modulation_tau, 9D): C's first-order recursion rounds ln τ to float32 every sample (ulp
-    # 2.4e-7 at ln τ ≈ 2-3) and carries it over the ~1/k samples of a time constant: 3.6e-6 measured
+    # 2.4e-7 at ln τ ≈ 2-3) and carries it over the ~1/k samples of a time constant: 3.6e-6 measured on the mini cut
     rtol = 2e-5 if f.settings.modulation_tau > 0 else 2e-6
     for name in ("tau_acc", "tau_mag", "trust"):
         np.testing.assert_allclose(dc[name], ref.diagnostics[name], rtol=rtol, atol=2e-6, err_msg=name)

@@ -16,10 +16,11 @@ import pytest
 from conftest import with_fixed_gains
 from togglecf.core.quaternion import angle_between
 from togglecf.filters import VQFCoreFilter
-from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
+from togglecf.filters.toggling import TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
-from togglecf.toggling.gains import GainSearch, load_gains
-from togglecf.toggling.load import load_compiled_models, load_toggling_filter
+from togglecf.run.lodo import toggling_core_settings
+from togglecf.toggling.gains import GainSearch
+from togglecf.toggling.load import load_toggling_filter
 
 #: learned values of the kind the default search finds (τ_acc per state within [2, 5] s around the core's 3 s,
 #: a confidence floor, the predicted-disturbance back-off), followed with the default 3 s
@@ -105,9 +106,7 @@ def _recovery_s(dev, level, fs):
 
 def _cores(model_dir, fs):
     """learned filter kind -> (the learned filter in the loop, its core with learning off), as factories."""
-    m = load_compiled_models(model_dir)
-    cf_core = GainSearch().start(m.class_names, m.static_state)
-    assert len(cf_core.states) + N_PRED_NOISE == m.forest.n_outputs
+    cf_core = toggling_core_settings(model_dir)
     return {"vqf_toggling": (lambda: load_toggling_filter(model_dir, fs, kind="vqf_toggling"), lambda: VQFCoreFilter(fs)),
             "toggling": (lambda: load_toggling_filter(model_dir, fs, kind="toggling"),
                          lambda: _NoPrediction(TogglingFilter(fs, cf_core)))}
@@ -119,7 +118,6 @@ def _cores(model_dir, fs):
 def test_learned_filters_recover_as_fast_as_their_cores(model_dir, broad_trial, fault, kind):
     t = broad_trial
     make_learned, make_core = _cores(model_dir, t.fs)[kind]
-    assert load_gains(model_dir, kind=kind) is not None
     core = _deviation(make_core, t, fault)
     learned = _deviation(make_learned, t, fault)
     assert np.all(np.isfinite(learned)) and np.all(np.isfinite(core))  # nothing poisons the state

@@ -217,9 +217,7 @@ def modulate(state, p, pred):
         e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
         if e >= 0.0:  # False for NaN
             backoff = 1.0 + e
-    k_mag = gain_from_tau(tau_mag, p.ts)
-    if backoff != 1.0:
-        k_mag = k_mag / backoff
+    k_mag = gain_from_tau(tau_mag, p.ts) / backoff  # exact for backoff = 1: the core's k_mag bit for bit
     mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
            math.exp(2.0 * lg), math.exp(2.0 * lc))
     first = 0 if p.modulation_gain >= 1.0 else _N_FOLLOWED  # followed: τ_acc's coefficients and k_mag by _follow

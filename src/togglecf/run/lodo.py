@@ -25,8 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from togglecf.data.broad import DatasetIndex, open_index
-from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
-from togglecf.learn.models import load_bundle
+from togglecf.filters.toggling import TogglingFilter, TogglingSettings
 from togglecf.metrics.broad import trial_errors
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
@@ -37,9 +36,10 @@ from togglecf.run.sweep import grid_search
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer
 from togglecf.toggling.gains import GainSearch
+from togglecf.toggling.load import load_compiled_models
 
-__all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_results",
-           "lodo_table", "lodo_json"]
+__all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_settings",
+           "toggling_core_results", "madgwick_tagp_results", "lodo_table", "lodo_json"]
 
 log = logging.getLogger(__name__)
 
@@ -61,22 +61,24 @@ def dataset_dirs(first: Path) -> list[Path]:
     return [first, *others]
 
 
-def toggling_core_results(model_dir, index: DatasetIndex, names) -> dict:
-    """trial -> ``TrialResult`` of the toggling CF with learning off: the gain search's starting
+def toggling_core_settings(model_dir) -> TogglingSettings:
+    """The toggling CF with learning off for the models of ``model_dir``: its gain search's starting
     point (``GainSearch.start``: moderate time constants in every state, the noise terms, the
-    disturbance scale and the confidence floor off) fed no prediction (NaN rows), so the models
-    are never used: the filter the learned one would be without its models."""
-    bundle = load_bundle(model_dir)
-    states = tuple(bundle.classifier.class_names_)
-    static = next((c for c in ("rest", "static") if c in states), states[0])
-    settings = GainSearch().start(states, static)
+    disturbance scale and the confidence floor off). Run it with no prediction (NaN rows) so that the
+    models play no part: the filter the learned one would be without its models."""
+    models = load_compiled_models(model_dir)
+    return GainSearch().start(models.class_names, models.static_state)
+
+
+def toggling_core_results(model_dir, index: DatasetIndex, names) -> dict:
+    """trial -> ``TrialResult`` of the toggling CF with learning off (``toggling_core_settings``, no prediction)."""
+    settings = toggling_core_settings(model_dir)
     out = {}
     for n in names:
         t = index.load(n)
         f = TogglingFilter(t.fs, settings)
         t0 = time.perf_counter()
-        q = f.update_batch(t.gyr, t.acc, t.mag, predictions=np.full((t.n_samples, len(states) + N_PRED_NOISE),
-                                                                      np.nan)).quat
+        q = f.update_batch(t.gyr, t.acc, t.mag, predictions=np.full((t.n_samples, f.n_predictions), np.nan)).quat
         us = 1e6 * (time.perf_counter() - t0) / t.n_samples
         out[n] = TrialResult(t.name, t.groups, trial_errors(q, t.opt_quat, t.movement), us, t.n_samples)
     return out
@@ -86,7 +88,7 @@ def madgwick_tagp_results(train_dirs, index: DatasetIndex, names, jobs: int | No
     """(trial -> ``TrialResult`` on the left-out ``index``, the β) of Madgwick at its TAGP over the study
     config's grid (``[baselines.madgwick]``) on every trial of ``train_dirs``."""
     grid = load_study_config().baselines["madgwick"]
-    train = open_index([str(d) for d in train_dirs] if len(train_dirs) > 1 else str(train_dirs[0]))
+    train = open_index([str(d) for d in train_dirs])
     best = grid_search(train, train.select(None), "madgwick", grid, jobs=jobs).params
     spec = FilterSpec("madgwick", params=best)
     return {n: score_trial(index.load(n), spec)[0] for n in names}, best
@@ -105,8 +107,7 @@ def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs
         model_dir = Path(out_dir) / f"without_{left.name}" / "models"
         t0 = time.perf_counter()
         log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
-        run_training(load_config(config), data_dir=[str(d) for d in train] if len(train) > 1 else str(train[0]),
-                     out=model_dir, verbose=verbose)
+        run_training(load_config(config), data_dir=[str(d) for d in train], out=model_dir, verbose=verbose)
         index = DatasetIndex.from_dir(left)
         names = index.select(None)
         per = models_transfer(model_dir, index)

@@ -57,9 +57,10 @@ _TIE_BREAK = 1e-3
 
 
 def trial_datasets(trials) -> np.ndarray:
-    """The dataset of each trial: the ``<dataset>/`` prefix of its name (``MultiIndex``), else ``""``."""
-    return np.array([str(getattr(t, "name", t)).partition("/")[0] if "/" in str(getattr(t, "name", t)) else ""
-                     for t in trials])
+    """The dataset of each trial (a ``Trial`` or its name): the ``<dataset>/`` prefix of its name
+    (``MultiIndex``), else ``""``."""
+    parts = (str(getattr(t, "name", t)).partition("/") for t in trials)
+    return np.array([head if sep else "" for head, sep, _ in parts])
 
 
 def objective_value(name: str, rmse, start_rmse, datasets) -> float:
@@ -360,7 +361,9 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     """Write ``gains.json`` beside the models (atomically): ``"format": GAINS_FORMAT``, the learned
     settings (time constants in s), the trials they were learned on and their sampling rate(s)
     (``trained_fs`` [Hz], per mode and for the file), the objective history and the models'
-    schema hash they belong to. A file of the old format is replaced, not merged into."""
+    schema hash they belong to. ``search``: the ``GainSearch``/``VQFGainSearch`` that learned them
+    (its objective is named; ``None``: settings fixed by hand). A file of the old format is replaced,
+    not merged into."""
     model_dir = Path(model_dir)
     meta = json.loads((model_dir / "metadata.json").read_text())
     key = mode_name(_KIND_OF[type(settings)], use_mag)
@@ -375,7 +378,8 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     doc["trained_fs"] = sorted(set(doc.get("trained_fs", [])) | set(rates))
     doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trained_fs": rates,
                 "trials": [getattr(t, "name", t) for t in trials],
-                "objective": _OBJECTIVE_TEXT[getattr(search, "objective", "mean_rmse")], "predictions": predictions,
+                "objective": _OBJECTIVE_TEXT[search.objective] if search is not None else "none (not learned)",
+                "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)
     return path

@@ -43,10 +43,12 @@ ABLATION_ROWS = ("vqf_core_defaults", "vqf_taus_only", "vqf_toggling", "vqf_orac
 #: what each ablation row is
 ABLATION_LABELS = {"vqf_core_defaults": "VQF core alone (learning off)",
                    "vqf_taus_only": "VQF core + learned time constants (no noise removal)",
-                   "vqf_toggling": "VQF core + learned time constants + noise removal (the learned filter)",
+                   "vqf_toggling": "VQF core + learned time constants (the learned filter; noise removal as learned: "
+                                   "off by default)",
                    "vqf_oracle": "VQF core + time constants learned and driven by the TRUE motion state (oracle)",
-                   "toggling": "toggling + noise removal (the filter)", "toggling_only": "toggling only (η̂ = 0)",
-                   "noise_only": "noise removal only (one gain, no rest bias)", "ransac_off": "both, models without RANSAC",
+                   "toggling": "toggling CF (the filter; noise removal as learned: off by default)",
+                   "toggling_only": "toggling only (η̂ = 0: no noise removal, no predicted-disturbance back-off)",
+                   "noise_only": "one gain for all states, no rest bias (noise removal as learned)", "ransac_off": "both, models without RANSAC",
                    "vqf_toggling_6d": "VQF core + learned time constants, 6D (its own 6D gains)",
                    "vqf_core_defaults_6d": "VQF core alone, 6D (learning off)",
                    "toggling_6d": "both, 6D", "cf_6d": "fixed CF, 6D", "madgwick_6d": "Madgwick, 6D", "vqf_6d": "VQF, 6D"}

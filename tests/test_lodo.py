@@ -61,9 +61,10 @@ VQF_OFF = {"tau_acc": [3.0], "tau_mag": [9.0], "confidence_floor": [0.0], "mag_d
 
 @pytest.mark.slow
 def test_leave_one_dataset_out_on_two_datasets(mini_index, tmp_path):
-    """Two copies of the mini trials as two datasets: each is scored with models trained on the other only.
-    With every learned VQF value at the core's, the learned VQF is its core on every trial of both (the
-    pairing of the table is right, and the followed modulation changes nothing when nothing is learned)."""
+    """Two copies of the mini trials as two datasets, each scored with models trained on the other (the same
+    recordings: a test of the plumbing, not of transfer). With every learned VQF value at the core's, the
+    learned VQF is its core on every trial of both (the pairing of the table is right, and the followed
+    modulation changes nothing when nothing is learned)."""
     dirs = []
     for name in ("first", "second"):
         shutil.copytree(mini_index.root, tmp_path / name)

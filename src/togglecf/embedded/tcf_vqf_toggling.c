@@ -119,7 +119,7 @@ static void tcf_vqft_follow(tcf_vqft_t *f) {
   w[3] += TCF_VQFT_MODULATION_GAIN * (w[1] - w[3]);
   f->tau_acc = expf(w[2]);
   f->tau_mag = expf(w[3]);
-  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);
+  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);  /* only acc_lp and k_mag are taken (sigma unused) */
   f->mod.acc_lp = m.acc_lp;
   f->mod.k_mag = m.k_mag / w[4];
 }

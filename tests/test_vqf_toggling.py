@@ -1,8 +1,12 @@
 """The VQF core with learned time constants (filters.vqf_toggling): learning off is the core,
 the fallback and the bounds hold, update == update_batch, the in-loop models equal the
 prediction-driven filter, and `togglecf train` learns and stores its gains."""
+import json
+import shutil
+
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from togglecf.core.quaternion import angle_between
 from togglecf.filters import VQFCoreFilter
@@ -57,7 +61,8 @@ def test_fallback_on_nan_and_low_confidence(mini_trial):
 
 
 def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
-    """Step 3: k_mag / (1 + (|η̂_m| / σ_m)²) in 9D; σ_m = 0 or 6D: the core's k_mag. The core's own
+    """Step 3 on the predicted disturbance alone (``mag_backoff_measured=False``):
+    k_mag / (1 + (|η̂_m| / σ_m)²) in 9D; σ_m = 0 or 6D: the core's k_mag. The core's own
     norm/dip rejection is switched off here so that k is the modulated gain on every sample."""
     t = mini_trial
     n = t.n_samples
@@ -65,7 +70,7 @@ def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
     eta[:, 3:] = (6.0, 0.0, 8.0)  # |η̂_m| = 10 µT
     pred = np.hstack([np.tile([1.0, 0.0], (n, 1)), eta])
     plain = dict(states=("a", "b"), mag_dist_rejection_enabled=False)
-    s = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0)  # (10/5)² = 4: k / 5
+    s = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0, mag_backoff_measured=False)  # (10/5)² = 4: k / 5
     on = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
     off = VQFTogglingFilter(t.fs, VQFTogglingSettings(**plain)).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
     k_on, k_off = on.diagnostics["k_mag"], off.diagnostics["k_mag"]
@@ -77,6 +82,51 @@ def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
     six_off = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=("a", "b")), use_mag=False).update_batch(
         t.gyr, t.acc, None, predictions=pred)
     assert np.array_equal(six.quat, six_off.quat)  # no magnetometer: nothing to scale
+
+
+def test_backoff_acts_on_no_more_disturbance_than_the_magnetometer_shows(mini_index, mini_names):
+    """Step 3 with ``mag_backoff_measured`` (the default): e = min((|η̂_m| / σ_m)², d² / σ_m²), d² =
+    n² + n_ref² − 2 n n_ref cos(dip − dip_ref) from the state before each sample. A slow reference
+    (scipy's rotation for the dip, the core's reference read from the state by name) gives k_mag on
+    every sample where the core itself does not reject the field. The field is scaled by 1.05 after
+    8 s (a disturbance the core's 10 % norm threshold lets through): the back-off grows there, and
+    a constant |η̂_m| = 10 µT never backs off more than the deviation the sensor shows."""
+    t = mini_index.load(mini_names[0])  # 02: undisturbed (BROAD), or synthetic
+    n = t.n_samples
+    mag = t.mag.copy()
+    late = np.arange(n) / t.fs > 8.0
+    mag[late] *= 1.05
+    pred = np.hstack([np.tile([1.0, 0.0], (n, 1)), np.zeros((n, 3)), np.tile([6.0, 0.0, 8.0], (n, 1))])
+    sigma = 5.0
+    # the core's first field reference after 1 s of any motion (VQF: 5 s of rotation), τ_mag 3 s:
+    # k_mag >= 1/N ends after 3.6 s (M5)
+    s = VQFTogglingSettings(states=("a", "b"), tau_mag=3.0, mag_new_first_time=1.0, mag_new_min_gyr=0.0,
+                            mag_disturbance_scale=sigma, modulation_tau=3.0)
+    f = VQFTogglingFilter(t.fs, s)
+    k, expected, core_k = np.zeros(n), np.zeros(n), np.zeros(n)
+    for i in range(n):
+        before = f.state_dict()
+        f.update(t.gyr[i], t.acc[i], mag[i], prediction=pred[i])
+        d = f.last_diagnostics
+        k[i] = d["k_mag"]
+        core_k[i] = (1.0 - np.exp(-1.0 / (t.fs * d["tau_mag"]))) if d["mag_dist"] == 0 else np.nan
+        n_ref, dip_ref = before["mag_ref_norm"], before["mag_ref_dip"]
+        if n_ref > 0:
+            w, x, y, z = before["quat"]
+            m_e = Rotation.from_quat([x, y, z, w]).apply(mag[i])
+            nm = np.linalg.norm(mag[i])
+            dev2 = nm ** 2 + n_ref ** 2 - 2 * nm * n_ref * np.cos(-np.arcsin(m_e[2] / nm) - dip_ref)
+            expected[i] = core_k[i] / (1.0 + min(4.0, dev2 / sigma ** 2))
+        else:
+            expected[i] = core_k[i]
+    steady = (np.arange(n) / t.fs > 4.0) & np.isfinite(core_k)  # after M5, where the core does not reject
+    assert steady[~late].sum() > 200 and steady[late].sum() > 500
+    # float64 in both; the slow reference takes another path to the dip: 1e-9 relative
+    np.testing.assert_allclose(k[steady], expected[steady], rtol=1e-9)
+    backoff = core_k / k
+    assert np.all(backoff[steady] <= 5.0 + 1e-12)  # never more than the predicted (10/5)² = 4
+    # the shown disturbance: 5 % of the field (~2 µT at BROAD's ~45 µT) against noise before it
+    assert np.median(backoff[steady & late]) > 1.1 * np.median(backoff[steady & ~late])
 
 
 def test_rest_thresholds_per_state_change_rest_detection(mini_trial):
@@ -181,6 +231,18 @@ def _final_tilt_deg(fs, modulation_tau):
     s = VQFTogglingSettings(states=STATES, tau_acc_states=(1.0, 10.0, 3.0, 3.0), modulation_tau=modulation_tau)
     q = VQFTogglingFilter(fs, s, use_mag=False).update_batch(gyr, acc, None, predictions=pred).quat[-1]
     return np.degrees(angle_between(q[None], np.array([[1.0, 0.0, 0.0, 0.0]])))[0]
+
+
+def test_gains_stored_before_the_measured_backoff_keep_their_meaning(vqf_model_dir, tmp_path):
+    """A gains.json written by this version stores ``mag_backoff_measured`` (True); one written before
+    it existed has no such key, and its σ_m meant the predicted disturbance alone: it loads as False."""
+    assert load_gains(vqf_model_dir, kind=VQF_TOGGLING).mag_backoff_measured is True
+    old = tmp_path / "m"
+    shutil.copytree(vqf_model_dir, old)
+    doc = json.loads((old / "gains.json").read_text())
+    del doc["vqf_9d"]["settings"]["mag_backoff_measured"]
+    (old / "gains.json").write_text(json.dumps(doc))
+    assert load_gains(old, kind=VQF_TOGGLING).mag_backoff_measured is False
 
 
 @pytest.mark.parametrize("fs", [100.0, 285.714])

@@ -125,9 +125,9 @@ int main(void) {
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_vqft_t)`` as documented in ``tcf_vqf_toggling.h``: the core's 532 bytes, the
     features ``4 · (37 + 12 L + S)`` (ring 12 L; EMA references 10, candidate field 5, previous acc
-    3, last-sample features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (21 + S)``
-    (modulation 7, diagnostics 3, the last prediction S + 6, the followed modulation 5)."""
-    return 532 + 4 * (37 + 12 * int(window) + int(n_classes)) + 4 * (21 + int(n_classes))
+    3, last-sample features 10, counters 3, η̂ 6; class probabilities S) and ``4 · (22 + S)``
+    (modulation 7, diagnostics 3, the last prediction S + 6, the followed modulation and back-off 6)."""
+    return 532 + 4 * (37 + 12 * int(window) + int(n_classes)) + 4 * (22 + int(n_classes))
 
 
 def _c_string(s: str) -> str:
@@ -180,6 +180,8 @@ def _config_header(*, model_dir: Path, fs: float, use_mag: bool, filt, window: i
 #define TCF_VQFT_LN_REST_TH_ACC_CORE {c_float(p.ln_rest_th_acc_core)}
 /* sigma_m [uT] of step 3 (heading gain / (1 + (|eta_m| / sigma_m)^2)); 0: off (always 0 in 6D) */
 #define TCF_VQFT_MAG_DIST_SCALE {c_float(p.mag_disturbance_scale)}
+/* mag_backoff_measured: the back-off acts on at most the disturbance the magnetometer shows */
+#define TCF_VQFT_BACKOFF_MEASURED {1 if s.mag_backoff_measured else 0}
 #define TCF_VQFT_CONFIDENCE_FLOOR {c_float(s.confidence_floor)}   /* c0 of step 1 */
 #define TCF_VQFT_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}   /* w_a of step 4 */
 #define TCF_VQFT_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}   /* w_m of step 4 */

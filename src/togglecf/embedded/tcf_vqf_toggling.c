@@ -19,6 +19,10 @@
 #error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_GAIN (re-export it)"
 #endif
 
+#if !defined(TCF_VQFT_BACKOFF_MEASURED)
+#error "tcf_config.h must define TCF_VQFT_BACKOFF_MEASURED (re-export it)"
+#endif
+
 #if !defined(TCF_VQFT_NOISE_ACC) || !defined(TCF_VQFT_NOISE_MAG)
 #error "tcf_config.h must define TCF_VQFT_NOISE_ACC and TCF_VQFT_NOISE_MAG (re-export it)"
 #endif
@@ -85,7 +89,7 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
   f->trust = lam;
   f->follow[0] = la;  /* the targets of tcf_vqft_follow */
   f->follow[1] = lm;
-  f->follow[4] = 1.0f;
+  f->follow[4] = 0.0f;
 #if TCF_VQFT_FOLLOW
   la = f->follow[2];  /* tau_acc, tau_mag: the followed values (tcf_vqft_follow moves them) */
   lm = f->follow[3];
@@ -95,23 +99,22 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
   tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, expf(ls), &f->mod);  /* step 3 */
   f->mod.rest_th_gyr_sq = expf(2.0f * lg);
   f->mod.rest_th_acc_sq = expf(2.0f * lc);
+  f->follow[5] = f->mod.k_mag;
 #if TCF_USE_MAG
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f) {  /* the predicted disturbance lowers the heading gain (NaN: no change) */
+  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f) {  /* the predicted disturbance (|eta_m| / sigma_m)^2 (NaN: none) */
     const float *em = pred + TCF_N_CLASSES + 3;
     float e = (em[0] * em[0] + em[1] * em[1] + em[2] * em[2])
               / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
-    if (e >= 0.0f) {
-      f->follow[4] = 1.0f + e;
-      f->mod.k_mag = f->mod.k_mag / (1.0f + e);
-    }
+    if (e >= 0.0f) f->follow[4] = e;
   }
 #endif
 }
 
 #if TCF_VQFT_FOLLOW
 /* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets, then the
-   tau_acc low-pass coefficients and k_mag (with the back-off) from them. Every sample, without the Python
-   filter's snap at 1e-9: in float32 the step stalls within an ulp of the target anyway */
+   tau_acc low-pass coefficients and k_mag (before the back-off: tcf_vqft_heading_gain) from them. Every
+   sample, without the Python filter's snap at 1e-9: in float32 the step stalls within an ulp of the target
+   anyway */
 static void tcf_vqft_follow(tcf_vqft_t *f) {
   float *w = f->follow;
   tcf_vqf_mod_t m;
@@ -121,7 +124,36 @@ static void tcf_vqft_follow(tcf_vqft_t *f) {
   f->tau_mag = expf(w[3]);
   tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);  /* only acc_lp and k_mag are taken (sigma unused) */
   f->mod.acc_lp = m.acc_lp;
-  f->mod.k_mag = m.k_mag / w[4];
+  f->follow[5] = m.k_mag;
+}
+#endif
+
+#if TCF_USE_MAG
+/* _field_deviation_sq: the disturbance the magnetometer shows [uT^2], the least |m - m_ref|^2 over the
+   unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame
+   (only the z row of R(q) is needed); 0 without a reference or for an invalid sample */
+static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
+  const float *q = c->q;
+  float n_ref = c->mag_ref_norm, n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2], n, mz, dip, d2;
+  if (!(n_ref > 0.0f && n2 > 0.0f && n2 < INFINITY)) return 0.0f;
+  n = sqrtf(n2);
+  mz = 2.0f * (q[1] * q[3] - q[0] * q[2]) * m[0] + 2.0f * (q[2] * q[3] + q[0] * q[1]) * m[1]
+       + (1.0f - 2.0f * (q[1] * q[1] + q[2] * q[2])) * m[2];
+  mz /= n;
+  dip = -asinf(mz < -1.0f ? -1.0f : (mz > 1.0f ? 1.0f : mz));
+  d2 = n2 + n_ref * n_ref - 2.0f * n * n_ref * cosf(dip - c->mag_ref_dip);
+  return d2 > 0.0f ? d2 : 0.0f;
+}
+
+/* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, with
+   TCF_VQFT_BACKOFF_MEASURED at most the one the magnetometer shows */
+static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
+  float e = f->follow[4];
+  if (TCF_VQFT_BACKOFF_MEASURED && e > 0.0f) {
+    float em = tcf_vqft_field_deviation_sq(&f->core, mag) / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
+    if (em < e) e = em;
+  }
+  f->mod.k_mag = f->follow[5] / (1.0f + e);
 }
 #endif
 
@@ -136,6 +168,9 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   if (tcf_vqft_changed(f, pred)) tcf_vqft_modulate(f, pred);
 #if TCF_VQFT_FOLLOW
   tcf_vqft_follow(f);
+#endif
+#if TCF_USE_MAG
+  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DIST_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
 #endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
   for (j = 0; j < 6; ++j)
@@ -162,7 +197,8 @@ int tcf_vqft_init(tcf_vqft_t *f) {
   f->trust = 0.0f;
   f->follow[0] = f->follow[2] = TCF_VQFT_LN_TAU_ACC_CORE;
   f->follow[1] = f->follow[3] = TCF_VQFT_LN_TAU_MAG_CORE;
-  f->follow[4] = 1.0f;
+  f->follow[4] = 0.0f;
+  f->follow[5] = f->mod.k_mag;
   return 0;
 }
 

@@ -44,13 +44,14 @@ typedef struct tcf_vqft {
   tcf_vqf_mod_t mod;       /* coefficients in use (steps 1-3 of the last prediction change) */
   float last_p[TCF_N_CLASSES + 6];  /* the prediction the modulation was made from (NaN: none) */
   float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
-  float follow[5];  /* modulation_tau: target ln tau_acc, ln tau_mag; the followed ones; heading back-off divisor */
+  float follow[6];  /* target ln tau_acc, ln tau_mag; the followed ones (modulation_tau); the predicted
+                       disturbance (|eta_m| / sigma_m)^2; k_mag before the back-off */
 } tcf_vqft_t;
 
 /* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,
-   the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics, 5 of the
-   followed modulation */
-#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (21 + TCF_N_CLASSES))
+   the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics, 6 of the
+   followed modulation and the back-off */
+#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (22 + TCF_N_CLASSES))
 
 /* Reset: the core's initial state and settings (tcf_vqf_config.h), empty window, no prediction.
    Returns 0, or -1 if the core refuses the settings (not for an exported configuration). */

@@ -15,8 +15,10 @@ acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulat
 3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag),
    W_motion = σ⁴/V + σ² and th² from the blended values, exactly as the core derives its own (B5);
    with a predicted magnetic disturbance (9D, σ_m > 0, the same law as the toggling CF's step 4)
-   k_mag ← k_mag / (1 + (|η̂_m| / σ_m)²): the heading correction backs off where the models
-   predict a disturbed field, on top of the core's own norm/dip rejection (M1–M4)
+   k_mag ← k_mag / (1 + e), e = (min(|η̂_m|, |m − m_ref|_min) / σ_m)²: the heading correction
+   backs off where the models predict a disturbed field *and* the magnetometer shows one against
+   the core's reference norm and dip (``mag_backoff_measured``; per sample), on top of the core's
+   own norm/dip rejection (M1–M4)
 4. noise removal   a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1])
 5. the core step on (ω, a_d, m_d) with those coefficients.
 
@@ -37,6 +39,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from togglecf.core.quaternion import rotate_scalar
 from togglecf.filters.toggling import N_PRED_NOISE, PredictionDrivenFilter
 from togglecf.filters.vqf_core import (
     CoreModulation,
@@ -45,6 +48,8 @@ from togglecf.filters.vqf_core import (
     VQFCoreSettings,
     bias_noise_w,
     butterworth_lp_coefficients,
+    O_MAG_REF_DIP,
+    O_MAG_REF_NORM,
     core_update,
     gain_from_tau,
 )
@@ -90,6 +95,10 @@ class VQFTogglingSettings(VQFCoreSettings):
             change from hop to hop with predictions made from the same signal weight the signal
             by its own content, which biases the average (the inclination). Changing a time
             constant no faster than the time scale it sets keeps the average unbiased.
+        mag_backoff_measured: True (default): the back-off of step 3 acts on at most the
+            disturbance the magnetometer itself shows against the core's reference field, so a
+            model that predicts a disturbance the sensor does not see (another sensor, unfamiliar
+            motion) cannot lower the heading gain. False: on the predicted disturbance alone.
     """
 
     states: tuple = ("static", "dynamic")
@@ -103,6 +112,7 @@ class VQFTogglingSettings(VQFCoreSettings):
     noise_weight_acc: float = 0.0
     noise_weight_mag: float = 0.0
     modulation_tau: float = 0.0
+    mag_backoff_measured: bool = True
 
     def __post_init__(self):
         super().__post_init__()
@@ -147,12 +157,13 @@ VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
     ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
     ("confidence_floor", float), ("mag_disturbance_scale", float), ("noise_weight_acc", float),
-    ("noise_weight_mag", float), ("modulation_gain", float)])
+    ("noise_weight_mag", float), ("modulation_gain", float), ("mag_backoff_measured", float)])
 
 _MOD_NAMES = tuple(f"mod_{f}" for f in CoreModulation._fields)
 _STATE_NAMES = (VQFCoreFilter.state_names + _MOD_NAMES + ("tau_acc_now", "tau_mag_now", "trust_now")
                 + tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE))
-                + ("ln_tau_acc_target", "ln_tau_mag_target", "ln_tau_acc_now", "ln_tau_mag_now", "mag_backoff"))
+                + ("ln_tau_acc_target", "ln_tau_mag_target", "ln_tau_acc_now", "ln_tau_mag_now",
+                   "mag_disturbance_predicted", "mag_backoff"))
 O_MOD = 5 + len(VQFCoreFilter.state_names)
 O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
 O_LAST_P = O_NOW + 3
@@ -211,27 +222,27 @@ def modulate(state, p, pred):
     tau_acc, tau_mag = math.exp(la), math.exp(lm)
     b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)  # step 3
     w_motion = bias_noise_w(math.exp(ls), p.bias_v)
-    backoff = 1.0  # the divisor of the heading gain
-    if p.mag_disturbance_scale > 0.0:  # the predicted disturbance (no prediction: NaN, no change)
+    e_pred = 0.0  # the predicted disturbance (|η̂_m| / σ_m)² (no prediction: NaN, none)
+    if p.mag_disturbance_scale > 0.0:
         e0, e1, e2 = pred[ns + 3], pred[ns + 4], pred[ns + 5]
         e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
         if e >= 0.0:  # False for NaN
-            backoff = 1.0 + e
-    k_mag = gain_from_tau(tau_mag, p.ts) / backoff  # exact for backoff = 1: the core's k_mag bit for bit
+            e_pred = e
+    k_mag = gain_from_tau(tau_mag, p.ts) / (1.0 + e_pred)  # exact for e = 0: the core's k_mag bit for bit
     mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
            math.exp(2.0 * lg), math.exp(2.0 * lc))
     first = 0 if p.modulation_gain >= 1.0 else _N_FOLLOWED  # followed: τ_acc's coefficients and k_mag by _follow
     for i in range(first, len(mod)):
         state[O_MOD + i] = mod[i]
-    state[O_FOLLOW], state[O_FOLLOW + 1], state[O_FOLLOW + 4] = la, lm, backoff
+    state[O_FOLLOW], state[O_FOLLOW + 1], state[O_FOLLOW + 4] = la, lm, e_pred
     return tau_acc, tau_mag, lam
 
 
 @njit(cache=True)
 def _follow(state, p):
     """``modulation_tau``: ln τ_acc and ln τ_mag one step towards their targets (first-order
-    low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves, k_mag every sample
-    (the back-off applies at once: it only ever lowers the heading gain)."""
+    low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves (k_mag:
+    ``_heading_gain``, every sample)."""
     k = p.modulation_gain
     la, lm = state[O_FOLLOW + 2], state[O_FOLLOW + 3]
     ta, tm = state[O_FOLLOW], state[O_FOLLOW + 1]
@@ -250,7 +261,34 @@ def _follow(state, p):
             lm = tm
         state[O_FOLLOW + 3] = lm
         state[O_NOW + 1] = math.exp(lm)
-    state[O_MOD + 5] = gain_from_tau(state[O_NOW + 1], p.ts) / state[O_FOLLOW + 4]
+
+
+@njit(cache=True, inline="always")
+def _field_deviation_sq(state, mag):
+    """The disturbance the magnetometer shows [µT²]: the least |m − m_ref|² over the unknown
+    azimuth, from the field norm n and dip d of ``mag`` (dip in the previous sample's earth frame)
+    and the core's reference n_ref, d_ref (M2): n² + n_ref² − 2 n n_ref cos(d − d_ref). 0 while
+    the core has no reference yet, or for an invalid sample."""
+    n_ref = state[O_MAG_REF_NORM]
+    n2 = mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]
+    if not (n_ref > 0.0 and n2 > 0.0 and n2 < math.inf):
+        return 0.0
+    n = math.sqrt(n2)
+    mz = rotate_scalar((state[0], state[1], state[2], state[3]), (mag[0], mag[1], mag[2]))[2]
+    dip = -math.asin(min(max(mz / n, -1.0), 1.0))
+    return max(n2 + n_ref * n_ref - 2.0 * n * n_ref * math.cos(dip - state[O_MAG_REF_DIP]), 0.0)
+
+
+@njit(cache=True, inline="always")
+def _heading_gain(state, p, mag):
+    """Step 3's k_mag for this sample: the followed τ_mag's gain divided by the back-off
+    1 + e, e = (|η̂_m| / σ_m)², with ``mag_backoff_measured`` at most the disturbance the
+    magnetometer itself shows, (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``)."""
+    e = state[O_FOLLOW + 4]
+    if p.mag_backoff_measured > 0.5 and e > 0.0:
+        e = min(e, _field_deviation_sq(state, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
+    state[O_FOLLOW + 5] = 1.0 + e
+    state[O_MOD + 5] = gain_from_tau(state[O_NOW + 1], p.ts) / (1.0 + e)
 
 
 @njit(cache=True, inline="always")
@@ -272,6 +310,8 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
             state[O_NOW], state[O_NOW + 1] = tau_acc, tau_mag
     if p.modulation_gain < 1.0:
         _follow(state, p)
+    if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0:
+        _heading_gain(state, p, mag)
     eta_ok = True
     for j in range(N_PRED_NOISE):
         if not math.isfinite(pred[ns + j]):
@@ -315,7 +355,8 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
                 "confidence_floor": s.confidence_floor,
                 "mag_disturbance_scale": s.mag_disturbance_scale if self.use_mag else 0.0,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
-                "modulation_gain": gain_from_tau(s.modulation_tau, self.Ts)}
+                "modulation_gain": gain_from_tau(s.modulation_tau, self.Ts),
+                "mag_backoff_measured": float(s.mag_backoff_measured)}
 
     def reset(self):
         """The core's initial state; the modulation starts at the core's own coefficients (no
@@ -328,7 +369,7 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
         self.state[O_NOW:O_NOW + 3] = (self.settings.tau_acc, self.settings.tau_mag, 0.0)
         self.state[O_LAST_P:O_LAST_P + MAX_STATES + N_PRED_NOISE] = np.nan
         ln_core = (math.log(self.settings.tau_acc), math.log(self.settings.tau_mag))
-        self.state[O_FOLLOW:O_FOLLOW + 5] = (*ln_core, *ln_core, 1.0)
+        self.state[O_FOLLOW:O_FOLLOW + 6] = (*ln_core, *ln_core, 0.0, 1.0)
 
     def _default_pred(self, n):
         return np.full((n, self.n_predictions), np.nan)

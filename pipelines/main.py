@@ -15,11 +15,17 @@ cross-dataset protocol.
    Nexus 5 and the iPhone 4S data): train on all the others, score the one left out; the learned
    filters beside their cores with learning off, per dataset and group (``togglecf.run.lodo``)
    -> reports/lodo/lodo.md (9D: the learned filters' 9D gains; the harm to find was in the heading).
+5. The pretrained learned VQF: the same recipe trained on every dataset present, with its model card
+   and the no-harm check of step 4 (``togglecf.run.pretrained``) -> reports/pretrained/
+   (learned_vqf.npz, MODEL_CARD.md); ``python pipelines/ship_pretrained.py`` puts them in the package
+   when every check passed, and says whether the package's copy was the same.
 
-    python pipelines/main.py [--skip-study]    # --skip-study: steps 2-4 on an existing reports/study
-    python pipelines/main.py --lodo-only       # step 4 alone
+    python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
+    python pipelines/main.py --lodo-only       # steps 4 and 5 alone
+    python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
 """
 import argparse
+import json
 import logging
 import os
 import sys
@@ -32,6 +38,7 @@ from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_di
 from togglecf.data.download import download_broad
 from togglecf.run.config import load_config
 from togglecf.run.lodo import dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
+from togglecf.run.pretrained import train_pretrained
 from togglecf.run.study import load_study_config, run_study
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
@@ -41,6 +48,7 @@ STUDY_DIR = Path("reports/study")
 TRANSFER_DIR = Path("reports/transfer")
 BOTH_DIR = Path("reports/study_both")
 LODO_DIR = Path("reports/lodo")
+PRETRAINED_DIR = Path("reports/pretrained")
 log = logging.getLogger("togglecf.main")
 
 
@@ -69,12 +77,17 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-4 only)")
-    p.add_argument("--lodo-only", action="store_true", help="step 4 alone: leave one dataset out")
+    p.add_argument("--lodo-only", action="store_true", help="steps 4 and 5 alone: leave one dataset out, pretrained")
+    p.add_argument("--pretrained-only", action="store_true", help="step 5 alone (on an existing reports/lodo)")
     args = p.parse_args(argv)
     broad = data_dir()
     command = "python pipelines/main.py"
+    if args.pretrained_only:
+        pretrained(broad)
+        return 0
     if args.lodo_only:
         leave_datasets_out(broad, command)
+        pretrained(broad)
         return 0
     if not args.skip_study:
         run_study(load_study_config(), data_dir=broad, out_dir=STUDY_DIR)
@@ -93,7 +106,18 @@ def main(argv=None) -> int:
     else:
         sensor_and_both(broad, phone, command)
     leave_datasets_out(broad, command)
+    pretrained(broad)
     return 0
+
+
+def pretrained(broad: Path) -> None:
+    lodo_file = LODO_DIR / "lodo.json"
+    lodo = json.loads(lodo_file.read_text()) if lodo_file.is_file() else None
+    if lodo is None:
+        log.warning(f"{lodo_file} not found: the model card will have no leave-one-dataset-out check")
+    path = train_pretrained(dataset_dirs(broad), PRETRAINED_DIR, lodo)
+    print((PRETRAINED_DIR / "MODEL_CARD.md").read_text())
+    log.info(f"pretrained learned VQF: {path}; `python pipelines/ship_pretrained.py` puts it in the package")
 
 
 def leave_datasets_out(broad: Path, command: str) -> None:

@@ -27,3 +27,13 @@ def _numba_cache_dir() -> str:
 
 if "NUMBA_CACHE_DIR" not in _os.environ:  # must be set before numba is first imported
     _os.environ["NUMBA_CACHE_DIR"] = _numba_cache_dir()
+
+
+def __getattr__(name):
+    """``togglecf.LearnedVQF``: the pretrained learned VQF (``togglecf.toggling.pretrained``), imported
+    on first use so that ``import togglecf`` stays light."""
+    if name == "LearnedVQF":
+        from togglecf.toggling.pretrained import LearnedVQF  # noqa: PLC0415 (lazy: a heavy import on first use)
+
+        return LearnedVQF
+    raise AttributeError(f"module 'togglecf' has no attribute {name!r}")

@@ -38,7 +38,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict"]
 
 logger = logging.getLogger(__name__)
 
@@ -415,10 +415,17 @@ def load_gains(model_dir, use_mag: bool = True, kind: str = "toggling"):
         have = sorted(k for k in doc if k in MODES)
         raise KeyError(f"{path}: no gains of mode {key!r} stored (have: {have}); learn them with "
                        f"`togglecf train` and [gains] modes = [..., \"{key}\"]")
-    s = {k: tuple(v) if isinstance(v, list) else v for k, v in doc[key]["settings"].items()}
-    if kind == "vqf_toggling":  # stored before the measured back-off existed: σ_m meant the predicted one alone
+    return settings_from_dict(_SETTINGS_OF[kind], doc[key]["settings"])
+
+
+def settings_from_dict(cls, d: dict):
+    """A learned filter's settings ``cls`` from their stored JSON form (lists for tuples). For the
+    learned VQF, settings stored before ``mag_backoff_measured`` existed keep their meaning (the
+    back-off on the predicted disturbance alone)."""
+    s = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    if cls is VQFTogglingSettings:
         s.setdefault("mag_backoff_measured", False)
-    return _SETTINGS_OF[kind](**s)
+    return cls(**s)
 
 
 def check_gains_format(doc: dict, path) -> None:

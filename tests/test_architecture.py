@@ -73,12 +73,16 @@ LAZY_OK = {"xgboost", "dask", "distributed", "sklearn", "scipy", "h5py", "matplo
 
 def test_no_function_level_imports_of_togglecf():
     """Imports inside functions only for optional heavy dependencies, never of togglecf itself
-    (which would hide an import cycle)."""
+    (which would hide an import cycle). One exception: the package's ``__getattr__`` (PEP 562), its
+    lazy public re-exports (``togglecf.LearnedVQF``), so that ``import togglecf`` stays light; the
+    package itself imports nothing of togglecf, so they cannot close a cycle."""
     bad = []
     for path in _py_files(SRC):
         tree = ast.parse(path.read_text(), str(path))
         for fn in ast.walk(tree):
             if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            if path == SRC / "__init__.py" and fn.name == "__getattr__":
                 continue
             for node in ast.walk(fn):
                 if isinstance(node, ast.ImportFrom):

@@ -1,13 +1,18 @@
 """Command-line options shared by several commands: the execution backend (``--backend``,
 ``--scheduler``, ``--retries``) and the data directories (``--data``, repeatable), with the one
-precedence rule (flags > config ``[run]`` > defaults)."""
+precedence rule (flags > config ``[run]`` > defaults). Cheap to import (``cli.parsers`` builds every
+parser with it)."""
 from __future__ import annotations
 
+import sys
+
 from togglecf.core.config import BACKENDS, RUN_DEFAULTS, load_run_section
-from togglecf.data.broad import SELECTION_HELP
+from togglecf.core.extras import check_extra
+from togglecf.data.broad import SELECTION_HELP, open_index
 from togglecf.parallel.backend import Backend, BackendError, make_backend
 
-__all__ = ["add_backend_args", "backend_settings", "backend_from_args", "add_data_args", "data_dirs"]
+__all__ = ["add_backend_args", "backend_settings", "backend_from_args", "add_data_args", "data_dirs", "data_index",
+           "DATA_HELP"]
 
 DATA_HELP = ("data directory in BROAD's layout (trials.json + .hdf5/.mat); repeat for several "
              "(--data A --data B: trial names become <dir name>/<trial>, groups <dir name>/<group> plus one "
@@ -64,9 +69,19 @@ def backend_settings(args, run_cfg: dict | None = None) -> dict:
         raise BackendError(f"unknown backend {s['backend']!r}; choose one of {list(BACKENDS)}")
     if getattr(args, "scheduler", None) and getattr(args, "backend", None) is None:
         s["backend"] = "dask"  # --scheduler alone on the command line means Dask
+    if s["backend"] == "dask":
+        check_extra("dask", what="--backend dask")
     return s
 
 
 def backend_from_args(args, run_cfg: dict | None = None) -> Backend:
     s = backend_settings(args, run_cfg)
     return make_backend(s["backend"], s["scheduler"], getattr(args, "jobs", None), s["retries"])
+
+
+def data_index(args):
+    """The index of ``--data`` (one directory or several) or the config's ``[run] data``; its summary
+    on stderr."""
+    index = open_index(data_dirs(args))
+    print(index.summary(), file=sys.stderr)
+    return index

@@ -2,7 +2,8 @@
 Python models) and the whole learned filter in C (``--filter``: the toggling CF, or the VQF core
 with learned time constants); ``--max-bytes`` trains a pruned point first: the
 best point of an existing pruning sweep, else the documented default point
-(``run.prune.DEFAULT_EXPORT_POINT``); the sweep itself runs only with ``--full-sweep``."""
+(``run.prune.DEFAULT_EXPORT_POINT``); the sweep itself runs only with ``--full-sweep``. The parser is
+``cli.parsers.add_export_parser``; this module is imported when the command runs (the ``export`` extra)."""
 from __future__ import annotations
 
 import shutil
@@ -10,7 +11,8 @@ import sys
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from togglecf.cli.prune import add_sweep_arguments, sweep_from_args
+from togglecf.cli.parsers import add_export_parser
+from togglecf.cli.prune import sweep_from_args
 from togglecf.core.io import atomic_write_json
 from togglecf.embedded.cfilter import export_c_filter
 from togglecf.embedded.cvqf_toggling import export_c_vqf_toggling
@@ -39,40 +41,6 @@ from togglecf.run.prune import (
 from togglecf.run.train import run_training
 
 __all__ = ["add_export_parser", "cmd_export", "train_within_budget"]
-
-
-def add_export_parser(subparsers):
-    """``togglecf export``: register on the CLI's subparsers (sets ``func``)."""
-    sp = subparsers.add_parser("export", help="export a model directory as C code (TL2cgen or compact arrays), "
-                               "checked against the Python models, with object sizes")
-    sp.add_argument("--models", required=True, metavar="DIR", help="a `togglecf train` model directory")
-    sp.add_argument("--out", required=True, metavar="DIR", help="output directory, e.g. build/embedded/NAME")
-    sp.add_argument("--format", choices=("tl2cgen", "array", "both"), default="both")
-    sp.add_argument("--quantize", action="store_true", help="TL2cgen: quantized thresholds (integer compares)")
-    sp.add_argument("--data", metavar="DIR", help="BROAD directory for the equivalence check")
-    sp.add_argument("--trials", metavar="LIST", default="all",
-                    help="trials whose windows are checked (default: all present)")
-    sp.add_argument("--no-check", action="store_true", help="skip the equivalence check (no data needed)")
-    sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
-    sp.add_argument("--6d", dest="six_d", action="store_true",
-                    help="C filter without magnetometer (6D gains from gains.json)")
-    sp.add_argument("--filter", choices=("toggling", "vqf_toggling"), default="toggling",
-                    help="which learned filter goes to OUT/filter in C: toggling (the toggling CF, gains 9d/6d; "
-                    "togglecf.embedded.cfilter) or vqf_toggling (the VQF core with learned time constants, gains "
-                    "vqf_9d/vqf_6d; togglecf.embedded.cvqf_toggling: sizes for host, rv32imc and Cortex-M4F)")
-    sp.add_argument("--max-bytes", type=int, metavar="N",
-                    help="flash budget: train a pruned point on the model's training trials into OUT/models and "
-                    "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "
-                    "error whose RISC-V object code (array format; tl2cgen with --format tl2cgen) fits in N bytes, "
-                    f"else the default point ({DEFAULT_EXPORT_POINT.clf_trees} trees x depth "
-                    f"{DEFAULT_EXPORT_POINT.clf_depth}, all features: the feature-v1 sweep's choice for 32 KB); minutes")
-    sp.add_argument("--full-sweep", action="store_true",
-                    help="with --max-bytes: run (or resume) the pruning sweep of --models in --sweep DIR first "
-                    "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")
-    sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
-    add_sweep_arguments(sp)
-    sp.set_defaults(func=cmd_export)
-    return sp
 
 
 def _point_from_sweep(args, rows, sweep_dir, key):

@@ -1,4 +1,6 @@
-"""``togglecf plot euler|error|3d``: orientation figures of one trial (``togglecf.report.plots``)."""
+"""``togglecf plot euler|error|3d``: orientation figures of one trial (``togglecf.report.plots``). The
+parser is ``cli.parsers.add_plot_parser``; this module is imported when the command runs (the ``plot``
+extra)."""
 from __future__ import annotations
 
 import sys
@@ -7,11 +9,12 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from togglecf.cli.parsers import add_plot_parser
 from togglecf.data.broad import open_index
 from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
-__all__ = ["add_plot_parser"]
+__all__ = ["add_plot_parser", "cmd_plot_euler", "cmd_plot_error", "cmd_plot_3d"]
 
 
 def _load_trial(args):
@@ -73,44 +76,3 @@ def cmd_plot_3d(args):
         times = np.linspace(args.start, t1 - 1.0 / trial.fs, args.frames)
         plot_3d_frames(trial, q, times, out=out, name=args.filter)
     print(f"wrote {out}", file=sys.stderr)
-
-
-def add_plot_parser(subparsers):
-    """``togglecf plot euler|error|3d ...`` (wire into ``cli._parser``: ``add_plot_parser(sub)``)."""
-    choices = FILTER_NAMES
-    p = subparsers.add_parser("plot", help="plot filters' orientation on one trial (Euler angles and their errors, "
-                              "BROAD's errors over time, 3-D)")
-    psub = p.add_subparsers(dest="plot_kind", required=True)
-
-    def common(sp):
-        sp.add_argument("--trial", required=True, help="one trial number or name, e.g. 05")
-        sp.add_argument("--data", metavar="DIR", help="BROAD directory (default: as `togglecf evaluate`)")
-        sp.add_argument("--models", metavar="DIR", help="model directory for the toggling filter")
-        sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer")
-        sp.add_argument("--start", type=float, default=0.0, help="start time [s]")
-        sp.add_argument("--end", type=float, default=None, help="end time [s] (default: trial end)")
-        sp.add_argument("--out", required=True, metavar="FILE")
-
-    sp = psub.add_parser("euler", help="roll/pitch/yaw of estimates vs ground truth, and estimate − truth per "
-                         "angle (wrapped to ±180°) -> PNG/SVG")
-    common(sp)
-    sp.add_argument("--filters", default="madgwick", help="comma-separated filter names (default: madgwick); "
-                    f"any of {', '.join(choices)}; --models adds toggling")
-    sp.set_defaults(func=cmd_plot_euler)
-
-    sp = psub.add_parser("error", help="BROAD's total/heading/inclination error over time of several filters "
-                         "-> PNG/SVG")
-    common(sp)
-    sp.add_argument("--filters", default="madgwick,vqf_core", help="comma-separated filter names (default: "
-                    f"madgwick,vqf_core); any of {', '.join(choices)}; --models adds toggling")
-    sp.set_defaults(func=cmd_plot_error)
-
-    sp = psub.add_parser("3d", help="IMU box of an estimate beside the truth: .gif/.mp4 animation or .png frames")
-    common(sp)
-    sp.add_argument("--filter", default="madgwick", choices=choices)
-    sp.add_argument("--fps", type=int, default=10)
-    sp.add_argument("--duration", type=float, default=None, help="animation length [s] (default: min(8, span); "
-                    "the trial or --start/--end span is subsampled to fps*duration frames)")
-    sp.add_argument("--frames", type=int, default=8, help="number of key frames for a still image")
-    sp.set_defaults(func=cmd_plot_3d)
-    return p

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.extras import require
+
 __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
@@ -269,22 +271,25 @@ _REQUIRED = REQUIRED_FIELDS
 def trial_fields(path) -> set[str]:
     """The dataset/variable names a trial file holds, without reading the arrays."""
     path = Path(path)
+    h5py = None if path.suffix.lower() == ".mat" else _h5py()
     try:
-        if path.suffix.lower() == ".mat":
+        if h5py is None:
             import scipy.io
 
             return {n for n, *_ in scipy.io.whosmat(path)}
-        import h5py
-
         with h5py.File(path, "r") as f:
             return set(f.keys())
     except Exception as exc:  # corrupt files: the loader says what is wrong
         raise DataError(path, None, f"cannot read trial file (corrupt or truncated?): {exc}") from None
 
 
-def _read_hdf5(path: Path):
-    import h5py
+def _h5py():
+    """h5py (the ``data`` extra); BROAD's ``.mat`` files need scipy alone."""
+    return require("h5py", extra="data", what="reading HDF5 trial files (.hdf5; .mat files need no extra)")
 
+
+def _read_hdf5(path: Path):
+    h5py = _h5py()
     try:
         with h5py.File(path, "r") as f:
             missing = [k for k in _REQUIRED if k not in f]

@@ -1,15 +1,45 @@
-"""A trained model bundle flattened for the filter loop, and predictions held between hops."""
+"""A trained model bundle flattened for the filter loop, and predictions held between hops.
+
+``togglecf train`` stores the flat forest beside the XGBoost files (``INLOOP_FILE``, JSON, its sha256
+in ``metadata.json`` ``inloop_forest``): ``CompiledModels.stored`` reads a model directory's filter
+models with numpy alone, no XGBoost (``pip install togglecf`` without extras runs trained filters)."""
 from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
 
 import numpy as np
 
-from togglecf.features.windows import (FEATURE_VERSION, FeatureSettings, SchemaMismatchError, compute_features,
-                                       feature_schema, window_length)
+from togglecf.features.windows import (FEATURE_VERSION, FeatureSchema, FeatureSettings, SchemaMismatchError,
+                                       compute_features, feature_schema, window_length)
 from togglecf.filters.toggling import N_PRED_NOISE
 from togglecf.learn.ranges import range_arrays, windows_out_of_range
 from togglecf.learn.trees import FlatForest, softmax
 
-__all__ = ["CompiledModels", "hold_predictions"]
+__all__ = ["CompiledModels", "hold_predictions", "inloop_forest", "inloop_forest_bytes", "INLOOP_FILE",
+           "INLOOP_FORMAT"]
+
+#: the flat forest of a model directory, written by ``learn.models.save_bundle``
+INLOOP_FILE = "inloop_forest.json"
+#: its layout: ``{"format", "feature_schema_hash", "classes", "forest": FlatForest.to_dict()}``
+INLOOP_FORMAT = 1
+
+
+def inloop_forest(classifier, regressors) -> FlatForest:
+    """Fitted models (``learn.models``) as the one flat forest the filter loop walks: outputs = class
+    margins, then η̂_a x/y/z, then η̂_m x/y/z. Reads the boosters (XGBoost)."""
+    forests = [FlatForest.from_booster(classifier.booster_)]
+    for target in ("acc", "mag"):
+        forests += [FlatForest.from_booster(b) for b in regressors[target].boosters_]
+    return FlatForest.concatenate(forests)
+
+
+def inloop_forest_bytes(classifier, regressors) -> bytes:
+    """The content of ``INLOOP_FILE`` for fitted models (the same models, the same bytes)."""
+    doc = {"format": INLOOP_FORMAT, "feature_schema_hash": classifier.schema_.hash,
+           "classes": list(classifier.class_names_), "forest": inloop_forest(classifier, regressors).to_dict()}
+    return json.dumps(doc, separators=(",", ":")).encode()
 
 
 class CompiledModels:
@@ -38,23 +68,41 @@ class CompiledModels:
 
     @classmethod
     def from_bundle(cls, bundle) -> "CompiledModels":
+        """A loaded model bundle (``learn.models.load_bundle``), its boosters flattened (XGBoost)."""
         where = bundle.path or "model bundle"
-        if bundle.schema.version != FEATURE_VERSION:  # other feature definitions: no setting recomputes them
-            raise SchemaMismatchError(f"{where}: trained on feature schema v{bundle.schema.version}, this togglecf "
-                                      f"computes v{FEATURE_VERSION} (togglecf.features.windows): retrain it with "
-                                      "`togglecf train`")
-        settings = FeatureSettings.from_dict({k: v for k, v in bundle.schema.settings.items() if k != "gravity"})
-        bundle.schema.check(feature_schema(settings), str(where))  # same definitions as training
-        forests = [FlatForest.from_booster(bundle.classifier.booster_)]
-        for target in ("acc", "mag"):
-            forests += [FlatForest.from_booster(b) for b in bundle.regressors[target].boosters_]
-        if "feature_ranges" not in bundle.metadata:  # bundle_format < 3: the fallback would silently be off
-            raise ValueError(f"{bundle.path or 'model bundle'}: trained without feature ranges "
-                             f"(bundle_format {bundle.metadata.get('bundle_format')}; the out-of-range fallback needs "
-                             "format 3): retrain it with `togglecf train`")
-        low, high, max_out = range_arrays(bundle.metadata["feature_ranges"], bundle.schema.names)
-        return cls(FlatForest.concatenate(forests), bundle.classifier.class_names_, settings, bundle.schema.hash,
-                   low, high, max_out)
+        settings, ranges = _settings_and_ranges(bundle.schema, bundle.metadata, where)
+        return cls(inloop_forest(bundle.classifier, bundle.regressors), bundle.classifier.class_names_, settings,
+                   bundle.schema.hash, *ranges)
+
+    @classmethod
+    def stored(cls, model_dir) -> "CompiledModels | None":
+        """The models of a model directory read from its ``INLOOP_FILE`` with numpy alone (no XGBoost),
+        checked as ``from_bundle`` checks them; ``None`` when the directory has none (trained before
+        the file was written: ``from_bundle(load_bundle(model_dir))`` flattens its boosters)."""
+        d = Path(model_dir)
+        meta_path = d / "metadata.json"
+        if not meta_path.is_file():
+            raise FileNotFoundError(f"{d}: no metadata.json (not a togglecf model directory, or an unfinished run)")
+        meta = json.loads(meta_path.read_text())
+        entry = meta.get("inloop_forest")
+        if not entry:
+            return None
+        schema = FeatureSchema.from_dict(meta["feature_schema"])
+        settings, ranges = _settings_and_ranges(schema, meta, d)
+        path = d / entry["file"]
+        raw = path.read_bytes()
+        if hashlib.sha256(raw).hexdigest() != entry["sha256"]:
+            raise ValueError(f"{path}: sha256 differs from metadata.json (file changed or damaged)")
+        doc = json.loads(raw)
+        if doc.get("format") != INLOOP_FORMAT:
+            raise ValueError(f"{path}: format {doc.get('format')!r}, this togglecf reads format {INLOOP_FORMAT}: "
+                             "retrain it with `togglecf train`")
+        forest = FlatForest.from_dict(doc["forest"])
+        if (doc["feature_schema_hash"] != schema.hash or list(doc["classes"]) != list(meta["classes"])
+                or forest.n_features != len(schema.names)):
+            raise SchemaMismatchError(f"{path}: made for other models than {meta_path} describes (feature schema "
+                                      "or classes differ)")
+        return cls(forest, meta["classes"], settings, schema.hash, *ranges)
 
     def predict_samples(self, gyr, acc, mag, fs: float) -> np.ndarray:
         """Per-sample predictions ``(N, S + 6)`` as the in-loop filter holds them: from the
@@ -78,6 +126,22 @@ class CompiledModels:
     def out_of_range(self, X) -> np.ndarray:
         """Bool ``(n,)``: the feature rows ``X`` the fallback rule (``learn.ranges``) refuses."""
         return windows_out_of_range(X, self.feature_low, self.feature_high, self.max_out_of_range)
+
+
+def _settings_and_ranges(schema: FeatureSchema, metadata: dict, where) -> tuple:
+    """The feature settings of trained models (refused when this togglecf computes other features) and
+    their training ranges ``(low, high, max_out_of_range)`` (refused when they were not stored)."""
+    if schema.version != FEATURE_VERSION:  # other feature definitions: no setting recomputes them
+        raise SchemaMismatchError(f"{where}: trained on feature schema v{schema.version}, this togglecf "
+                                  f"computes v{FEATURE_VERSION} (togglecf.features.windows): retrain it with "
+                                  "`togglecf train`")
+    settings = FeatureSettings.from_dict({k: v for k, v in schema.settings.items() if k != "gravity"})
+    schema.check(feature_schema(settings), str(where))  # same definitions as training
+    if "feature_ranges" not in metadata:  # bundle_format < 3: the fallback would silently be off
+        raise ValueError(f"{where}: trained without feature ranges "
+                         f"(bundle_format {metadata.get('bundle_format')}; the out-of-range fallback needs "
+                         "format 3): retrain it with `togglecf train`")
+    return settings, range_arrays(metadata["feature_ranges"], schema.names)
 
 
 def hold_predictions(ends, values, n: int) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from togglecf.core.extras import require
 from togglecf.learn.fitting import make_models
 from togglecf.parallel.backend import BackendError, DaskBackend
 
@@ -23,8 +24,7 @@ __all__ = ["fit_models_dask", "dask_arrays"]
 def dask_arrays(client, blocks, dtype=np.float32):
     """Blocks (list of 2-D numpy arrays with the same columns) scattered to the workers -> one dask array
     whose partitions are those blocks (row-wise)."""
-    import dask.array as da
-
+    da = require("dask.array", extra="dask", what="[run] distributed_fit")
     blocks = [np.ascontiguousarray(b, dtype=dtype) for b in blocks if len(b)]
     futs = client.scatter(blocks, hash=False)
     return da.concatenate([da.from_delayed(f, shape=b.shape, dtype=b.dtype) for f, b in zip(futs, blocks)], axis=0)
@@ -36,7 +36,7 @@ def fit_models_dask(backend, cfg, data, rows, schema, class_names):
         raise BackendError("[run] distributed_fit = true needs --backend dask (and a --scheduler)")
     if int(cfg["run"].get("max_features", 0) or 0) > 0:
         raise ValueError("[run] distributed_fit does not support max_features > 0; use the local final fit")
-    from xgboost import dask as dxgb
+    dxgb = require("xgboost.dask", extra="dask", what="[run] distributed_fit")
 
     client = backend.client
     clf, regs = make_models(cfg)

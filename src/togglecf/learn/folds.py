@@ -11,7 +11,8 @@ of similar size); merging them would change every published number, so both stay
 from __future__ import annotations
 
 import numpy as np
-from sklearn.model_selection import GroupKFold
+
+from togglecf.core.extras import require
 
 __all__ = ["trial_folds", "window_group_folds"]
 
@@ -35,6 +36,7 @@ def window_group_folds(group: np.ndarray, n_trials: int, n_splits: int):
         raise ValueError("cross-validation by trial needs at least 2 trials")
     dummy = np.zeros(len(group))
     folds = []
-    for tr, te in GroupKFold(n_splits=k).split(dummy, groups=group):
+    model_selection = require("sklearn.model_selection", extra="train", what="cross-validation by trial")
+    for tr, te in model_selection.GroupKFold(n_splits=k).split(dummy, groups=group):
         folds.append((np.unique(group[tr]), np.unique(group[te])))
     return folds

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from togglecf.core import quaternion as quat
+from togglecf.core.extras import require
 from togglecf.core.io import check_keys
 from togglecf.data.broad import GRAVITY, DataError, Trial
 
@@ -298,7 +299,8 @@ def ransac_inliers(acc, predicted, valid, threshold: float, seed: int = 0, max_t
     ``> threshold`` are outliers. Returns ``(inlier (N,) bool, fraction of valid samples,
     (A, b))``. Deterministic for a given ``seed``.
     """
-    from sklearn.linear_model import LinearRegression, RANSACRegressor
+    linear_model = require("sklearn.linear_model", extra="train", what="computing the RANSAC-cleaned training targets")
+    LinearRegression, RANSACRegressor = linear_model.LinearRegression, linear_model.RANSACRegressor
 
     acc = np.asarray(acc, float)
     predicted = np.asarray(predicted, float)

@@ -13,7 +13,8 @@ Settings: ``tree_method = hist``, ``nthread`` (default 2) and a fixed ``seed``, 
 give byte-identical model files. Models are saved as UBJSON (``.ubj``), never pickled.
 
 ``save_bundle`` / ``load_bundle`` write and read a model directory (see ``models/README.md``):
-model files, ``metadata.json`` (``bundle_format``, schema, settings, the training trials' sampling
+model files, the flat forest the filter loop walks (``inloop_forest.json``: ``learn.compiled``, read
+without XGBoost), ``metadata.json`` (``bundle_format``, schema, settings, the training trials' sampling
 rates, file hashes, CV metrics, versions).
 """
 from __future__ import annotations
@@ -27,8 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.extras import require
 from togglecf.core.io import atomic_write_bytes, atomic_write_json
 from togglecf.features.windows import FeatureSchema, SchemaMismatchError
+from togglecf.learn.compiled import INLOOP_FILE, inloop_forest_bytes
 
 __all__ = ["MotionClassifier", "NoiseRegressor", "ModelBundle", "save_bundle", "load_bundle",
            "classification_metrics", "regression_metrics", "SchemaMismatchError", "AXES"]
@@ -45,10 +48,8 @@ BUNDLE_FORMAT = 3
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-def _xgb():
-    import xgboost as xgb
-
-    return xgb
+def _xgb(what: str = "training or running XGBoost models (togglecf.learn.models)"):
+    return require("xgboost", extra="train", what=what)
 
 
 class _XGBBase:
@@ -211,8 +212,11 @@ def save_bundle(out_dir, classifier: MotionClassifier, regressors: dict, metadat
     for name, data in files.items():
         atomic_write_bytes(out / name, data)
         hashes[name] = _sha256(data)
+    inloop = inloop_forest_bytes(classifier, regressors)  # the filter's trees, read later without XGBoost
+    atomic_write_bytes(out / INLOOP_FILE, inloop)
     meta = {"bundle_format": BUNDLE_FORMAT, **metadata, "feature_schema": classifier.schema_.to_dict(),
             "classes": list(classifier.class_names_), "model_files": hashes,
+            "inloop_forest": {"file": INLOOP_FILE, "sha256": _sha256(inloop)},
             "classifier_params": classifier.get_params(),
             "regressor_params": {k: r.get_params() for k, r in regressors.items()}}
     atomic_write_json(out / "metadata.json", meta)
@@ -223,10 +227,12 @@ def load_bundle(model_dir, expected_schema: FeatureSchema | None = None) -> Mode
     """Load a model directory, verifying file hashes and (when given) the feature schema.
 
     Raises ``SchemaMismatchError`` when ``expected_schema`` (the features the caller will feed)
-    differs from the schema the models were trained on, ``ValueError`` for a damaged bundle.
+    differs from the schema the models were trained on, ``ValueError`` for a damaged bundle,
+    ``MissingExtraError`` without XGBoost (the ``train`` extra; the filter's trees alone:
+    ``learn.compiled.CompiledModels.stored``).
     """
-    xgb = _xgb()
     d = Path(model_dir)
+    xgb = _xgb(f"reading the XGBoost models of {d}")
     meta_path = d / "metadata.json"
     if not meta_path.is_file():
         raise FileNotFoundError(f"{d}: no metadata.json (not a togglecf model directory, or an unfinished run)")
@@ -267,7 +273,9 @@ def classification_metrics(y_true, proba, n_classes: int) -> dict:
     """Balanced accuracy, macro F1 (over the classes present in ``y_true`` or predicted), macro
     one-vs-rest ROC-AUC (over the classes present in ``y_true`` with both outcomes; for two classes
     the AUC of class 1), confusion matrix (rows true, columns predicted)."""
-    from sklearn.metrics import balanced_accuracy_score, confusion_matrix, f1_score, roc_auc_score
+    metrics = require("sklearn.metrics", extra="train", what="computing classification metrics")
+    balanced_accuracy_score, confusion_matrix = metrics.balanced_accuracy_score, metrics.confusion_matrix
+    f1_score, roc_auc_score = metrics.f1_score, metrics.roc_auc_score
 
     y_true = np.asarray(y_true, np.int64)
     proba = np.asarray(proba, float)

@@ -27,11 +27,17 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from togglecf.core.extras import require
+
 __all__ = ["FlatForest", "CompleteForest", "COMPLETE_MAX_DEPTH", "predict_margin_row",
            "predict_margin_row_complete", "sigmoid", "softmax"]
 
 _SUPPORTED = {"binary:logistic": "sigmoid", "multi:softprob": "softmax", "multi:softmax": "softmax",
               "reg:squarederror": "identity", "reg:pseudohubererror": "identity", "reg:absoluteerror": "identity"}
+#: the arrays of a ``FlatForest`` and their dtypes (``to_dict``/``from_dict``)
+_ARRAY_DTYPES = {"feature": np.int32, "threshold": np.float32, "left": np.int32, "right": np.int32,
+                 "default_left": np.bool_, "value": np.float32, "roots": np.int32, "tree_group": np.int32,
+                 "base_margin": np.float64}
 
 
 @dataclass
@@ -215,13 +221,29 @@ class FlatForest:
 
     def _base_margin_from(self, booster) -> np.ndarray:
         """The booster's margin for an all-missing row minus our leaf sum for it (version-proof)."""
-        import xgboost as xgb
-
+        xgb = require("xgboost", extra="train", what="flattening an XGBoost booster")
         row = np.full((1, self.n_features), np.nan, np.float32)
         ours = self.predict_margin(row, base=np.zeros(self.n_outputs))[0]
         dm = xgb.DMatrix(row, missing=np.nan, feature_names=booster.feature_names)  # named models insist on names
         theirs = np.asarray(booster.predict(dm, output_margin=True), np.float64)
         return theirs.reshape(-1)[: self.n_outputs] - ours
+
+    def to_dict(self) -> dict:
+        """The forest in JSON types (``json.dumps`` writes it, ``from_dict`` reads it back bit for bit:
+        a float32 is exactly a float64, and JSON keeps every float64)."""
+        return {**{k: getattr(self, k).tolist() for k in _ARRAY_DTYPES}, "link": self.link,
+                "n_features": int(self.n_features)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FlatForest":
+        """The forest ``to_dict`` wrote (numpy alone: no XGBoost)."""
+        arrays = {k: np.ascontiguousarray(np.asarray(d[k], dtype=dt)) for k, dt in _ARRAY_DTYPES.items()}
+        forest = cls(**arrays, link=str(d["link"]), n_features=int(d["n_features"]))
+        n = forest.n_nodes
+        if any(len(arrays[k]) != n for k in ("threshold", "left", "right", "default_left", "value")) or \
+                len(forest.tree_group) != len(forest.roots):
+            raise ValueError("forest arrays of inconsistent lengths")
+        return forest
 
     def arrays(self):
         """The tuple of arrays ``predict_margin_row`` takes after the feature row."""

@@ -18,13 +18,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from togglecf.core import quaternion as quat
+from togglecf.core.extras import deferred, require
 from togglecf.metrics.broad import error_angles_rad, error_quaternion
 from togglecf.report.style import style
+
+#: matplotlib (the ``plot`` extra), imported on first use
+plt = deferred("matplotlib.pyplot", extra="plot", what="togglecf.report.plots")
+art3d = deferred("mpl_toolkits.mplot3d.art3d", extra="plot", what="togglecf.report.plots")
 
 AXIS_COLORS = ("#e41a1c", "#4daf4a", "#377eb8")  # sensor x, y, z
 EULER_NAMES = ("roll", "pitch", "yaw")
@@ -201,8 +204,8 @@ class _Scene:
         self.centers = (np.array([-_OFFSET, 0, 0]), np.array([_OFFSET, 0, 0]))
         self.boxes, self.axes_lines = [], []
         for j, color in enumerate((style(label_est)["color"], style("truth")["color"])):
-            poly = Poly3DCollection(_box_polys(quat.IDENTITY, self.centers[j]), facecolor=color, alpha=0.35,
-                                    edgecolor="k", linewidths=0.5)
+            poly = art3d.Poly3DCollection(_box_polys(quat.IDENTITY, self.centers[j]), facecolor=color, alpha=0.35,
+                                          edgecolor="k", linewidths=0.5)
             ax.add_collection3d(poly)
             self.boxes.append(poly)
             lines = [ax.plot(*np.transpose(s), color=AXIS_COLORS[i], lw=2)[0]
@@ -253,8 +256,7 @@ def plot_3d_frames(trial, q_est, times, out=None, ncols=4, name="estimate", dpi=
 
 
 def ffmpeg_available() -> bool:
-    from matplotlib import animation
-
+    animation = require("matplotlib.animation", extra="plot", what="togglecf.report.plots")
     return animation.writers.is_available("ffmpeg")
 
 
@@ -275,8 +277,7 @@ def animate_3d(trial, q_est, path, fps: int = 10, duration: float | None = None,
     The trial (or ``t_range``) is subsampled to ``fps * duration`` frames (default: the real
     time span, at most 8 s of animation: ~0.1 s of rendering per frame) so it renders in
     seconds. Returns the Figure."""
-    from matplotlib import animation
-
+    animation = require("matplotlib.animation", extra="plot", what="togglecf.report.plots")
     q_est = np.asarray(q_est, float)
     t0, t1 = (0.0, trial.duration) if t_range is None else t_range
     i0, i1 = int(max(0, t0 * trial.fs)), int(min(trial.n_samples, t1 * trial.fs))

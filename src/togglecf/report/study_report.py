@@ -16,12 +16,14 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 from scipy.stats import wilcoxon
 
+from togglecf.core.extras import deferred, require
 from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from togglecf.learn.labels import make_targets
 from togglecf.report.style import color, style
+
+pd = deferred("pandas", extra="data", what="writing the study report's tables (togglecf.report.study_report)")
 
 __all__ = ["MAIN_FILTERS", "LABELS", "ABLATION_ROWS", "ABLATION_LABELS", "write_report", "rewrite_summary", "paired_comparison",
            "paired_test", "group_table", "error_figure", "groups_figure", "timeline_figure", "png_bytes"]
@@ -227,7 +229,7 @@ def png_bytes(fig) -> bytes:
 def error_figure(name: str, trial, series: dict):
     """Total error [deg] over time of the filters of ``ERROR_PLOT_FILTERS`` found in ``series``
     (filter -> per-sample error), each in its ``report.style``; line labels are the filter names."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot", what="drawing the study report's figures")
 
     time_s = np.arange(trial.n_samples) / trial.fs
     fig, ax = plt.subplots(figsize=(10, 3.2))
@@ -242,7 +244,7 @@ def error_figure(name: str, trial, series: dict):
 def groups_figure(per_group_total: pd.DataFrame):
     """Bars of mean total RMSE per BROAD group, one bar series per filter of ``MAIN_FILTERS`` found in
     the columns (label = filter name, colour ``report.style.color``); ``None`` when none is."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot", what="drawing the study report's figures")
 
     cols = [f for f in MAIN_FILTERS if f in per_group_total]
     if not cols:
@@ -262,7 +264,7 @@ def groups_figure(per_group_total: pd.DataFrame):
 def timeline_figure(name: str, trial, timeline: dict, truth_state):
     """The toggling filter's α_acc and predicted state (toggling's style) over the ground-truth
     motion state ``truth_state`` (per-sample class index; the truth's style)."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot", what="drawing the study report's figures")
 
     time_s = np.arange(trial.n_samples) / trial.fs
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 4), sharex=True)
@@ -279,10 +281,8 @@ def timeline_figure(name: str, trial, timeline: dict, truth_state):
 
 
 def _plots(out: Path, df, per_group_total, series, timelines, trials):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    require("matplotlib", extra="plot", what="drawing the study report's figures").use("Agg")
+    plt = require("matplotlib.pyplot", extra="plot", what="drawing the study report's figures")
 
     figures = []
     for name, s in series.items():

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.extras import require
 from togglecf.core.io import atomic_write_bytes, atomic_write_text
 from togglecf.data.broad import open_index
 from togglecf.embedded.forest_export import bundle_boosters
@@ -320,7 +321,7 @@ _COLUMNS = ("key", "reference", "clf_trees", "clf_depth", "reg_trees", "reg_dept
 def write_sweep_report(rows, out_dir, size_key: str = "array_riscv_bytes", max_bytes: int | None = None) -> dict:
     """``sweep.csv`` (every point, ``pareto`` marks the front on ``size_key``), ``pareto.csv``,
     ``pareto.png`` (error against size, front and budget marked). Returns the paths."""
-    import pandas as pd
+    pd = require("pandas", extra="data", what="the pruning sweep's report")
 
     out = Path(out_dir)
     rows = tie_verdicts(rows)
@@ -335,10 +336,10 @@ def write_sweep_report(rows, out_dir, size_key: str = "array_riscv_bytes", max_b
 
 
 def _plot(df, size_key, max_bytes, path):
-    import matplotlib
+    matplotlib = require("matplotlib", extra="plot", what="the pruning sweep's plot")
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot", what="the pruning sweep's plot")
 
     d = df[df[size_key].notna()]
     fig, ax = plt.subplots(figsize=(7, 4.2))

@@ -15,10 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import scipy
-import sklearn
-import xgboost
 
 from togglecf import __version__
+from togglecf.core.extras import deferred
 from togglecf.core.io import atomic_write_text
 from togglecf.data.broad import open_index, short_trial_name, trial_fields
 from togglecf.features.windows import FeatureSettings, feature_schema
@@ -33,6 +32,9 @@ from togglecf.learn.ranges import feature_ranges
 from togglecf.parallel.backend import InlineBackend, make_backend
 from togglecf.run.config import GAIN_KEYS, load_config
 from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_gains
+
+sklearn = deferred("sklearn", extra="train", what="togglecf training (togglecf.run.train)")
+xgboost = deferred("xgboost", extra="train", what="togglecf training (togglecf.run.train)")
 
 __all__ = ["run_training"]
 

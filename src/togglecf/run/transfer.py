@@ -18,12 +18,14 @@ import json
 import shutil
 from pathlib import Path
 
-import h5py
 import numpy as np
 
+from togglecf.core.extras import deferred
 from togglecf.data.broad import DatasetIndex, Trial
 from togglecf.registry import TRAINED, FilterSpec
 from togglecf.run.scoring import score_trial
+
+h5py = deferred("h5py", extra="data", what="writing decimated trials (togglecf.run.transfer)")
 
 __all__ = ["CLASSIC", "decimate_trial", "write_decimated", "models_transfer", "study_transfer", "transfer_table",
            "results_json"]

@@ -35,10 +35,13 @@ def model_dir_digest(model_dir) -> str:
 
 def load_compiled_models(model_dir) -> CompiledModels:
     """The models of a directory (schema-checked, hash-verified) flattened for the loop; cached
-    per process by content (``model_dir_digest``)."""
+    per process by content (``model_dir_digest``). Read from the stored flat forest with numpy alone
+    (``CompiledModels.stored``); a directory trained before that file existed is flattened from its
+    XGBoost files (the ``train`` extra)."""
     key = model_dir_digest(model_dir)
     if key not in _COMPILED_CACHE:
-        _COMPILED_CACHE[key] = CompiledModels.from_bundle(load_bundle(model_dir))
+        models = CompiledModels.stored(model_dir)
+        _COMPILED_CACHE[key] = models if models is not None else CompiledModels.from_bundle(load_bundle(model_dir))
     return _COMPILED_CACHE[key]
 
 

@@ -4,6 +4,7 @@ missing one is one line naming it, never a traceback. The light install is imita
 interpreter in which the optional packages cannot be imported (a ``sys.meta_path`` finder refuses
 them as if they were not installed)."""
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -24,10 +25,11 @@ from togglecf.learn.trees import FlatForest
 from togglecf.registry import FILTER_NAMES
 from togglecf.toggling import load_compiled_models
 from togglecf.toggling.gains import GainSearch
+from togglecf.toggling.pretrained import PRETRAINED_FILE
 
 ROOT = Path(__file__).resolve().parents[1]
 #: what the extras install (top-level module names); none of it may be needed by a light install
-HEAVY = ("xgboost", "sklearn", "pandas", "h5py", "matplotlib", "mpl_toolkits", "treelite", "tl2cgen", "tqdm",
+HEAVY = ("xgboost", "sklearn", "pandas", "matplotlib", "mpl_toolkits", "treelite", "tl2cgen", "tqdm",
          "serial", "dask", "distributed")
 
 _PRELUDE = """
@@ -202,7 +204,7 @@ def test_help_imports_no_optional_package_and_no_numba():
     loaded = set(json.loads(next(ln for ln in res.stdout.splitlines() if ln.startswith("LOADED "))[7:]))
     assert "evaluate" in res.stdout and "prune" in res.stdout
     assert not loaded & set(HEAVY)
-    assert not loaded & {"numba", "scipy", "llvmlite"}  # nothing compiled to list the commands
+    assert not loaded & {"numba", "scipy", "llvmlite", "h5py"}  # nothing compiled or read to list the commands
 
 
 @pytest.mark.parametrize("argv", [["trials"], ["evaluate"], ["tune"], ["train"], ["plot", "euler"], ["plot", "error"],
@@ -254,3 +256,27 @@ def test_every_extra_installs_what_its_commands_check():
     assert py["all"] <= py["dev"]  # the tests need everything (make venv installs .[dev])
     core = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert sorted(r.split(">")[0] for r in core) == ["numba", "numpy", "scipy"]
+
+
+# ------------------------------------------------------------------------- the README's five lines
+
+def _readme_quick_start() -> str:
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Five lines", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+@pytest.mark.broad
+def test_readme_quick_start_runs_the_shipped_model_without_extras():
+    """The README's quick start, as written, from the repository root (its data path is relative to
+    it), with every extra's package blocked: quaternions from the pretrained learned VQF on a phone
+    trial. Needs the shipped model (make run, pipelines/ship_pretrained.py) and the phone data."""
+    code = _readme_quick_start()
+    assert len([ln for ln in code.splitlines() if ln.strip() and not ln.startswith("#")]) <= 5
+    if not PRETRAINED_FILE.is_file():
+        pytest.fail(f"{PRETRAINED_FILE}: no pretrained model shipped (make run, then pipelines/ship_pretrained.py)")
+    if not (ROOT.parent / "shared" / "data" / "tyrex_nexus5" / "trials.json").is_file():
+        pytest.skip("the phone data is not beside the repository (../shared/data/tyrex_nexus5)")
+    res = _python(code + "\nimport numpy as np\nassert np.allclose(np.linalg.norm(quat, axis=1), 1.0)\n", cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    assert re.match(r"\(\d{4,}, 4\) \[", res.stdout)  # the printed shape: thousands of samples, 4

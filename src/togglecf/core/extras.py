@@ -1,13 +1,14 @@
 """The optional dependencies: which extra of ``pip install 'togglecf[EXTRA]'`` installs what, and the
 one way the package imports them.
 
-``pip install togglecf`` installs numpy, scipy and numba: every filter, the simulator, BROAD's
-metrics, ``.mat`` trial files, and the filter of a trained model directory in the loop
+``pip install togglecf`` installs numpy, scipy, numba and h5py: every filter, the simulator, BROAD's
+metrics, reading trial files (``.hdf5``, ``.mat``), the pretrained learned VQF (``togglecf.LearnedVQF``),
+and the filter of a trained model directory in the loop
 (``togglecf.toggling.load_toggling_filter``, the registry's learned filters: ``togglecf train``
 stores the trees as ``inloop_forest.json``, read without XGBoost). The rest are extras
 (``[project.optional-dependencies]`` in pyproject.toml):
 
-* ``data``: h5py (BROAD's ``.hdf5`` trial files), pandas (the tables of ``evaluate``, ``tune`` and the
+* ``data``: pandas (the tables of ``evaluate``, ``tune`` and the
   study), tqdm (progress bars; without it there are none);
 * ``train``: ``data`` + xgboost, scikit-learn (``togglecf train``; reading a model directory's
   XGBoost files, e.g. one trained before ``inloop_forest.json`` existed);
@@ -31,10 +32,10 @@ __all__ = ["EXTRAS", "MissingExtraError", "missing_extra_message", "require", "c
 #: extra -> the modules its commands import (those of the extras it includes too); pyproject.toml installs
 #: them (tests/test_light_install.py checks the two agree). tqdm is left out: without it there are no bars.
 EXTRAS = {
-    "data": ("h5py", "pandas"),
-    "train": ("h5py", "pandas", "xgboost", "sklearn"),
-    "export": ("h5py", "pandas", "xgboost", "sklearn", "treelite", "tl2cgen"),
-    "plot": ("h5py", "pandas", "matplotlib"),
+    "data": ("pandas",),
+    "train": ("pandas", "xgboost", "sklearn"),
+    "export": ("pandas", "xgboost", "sklearn", "treelite", "tl2cgen"),
+    "plot": ("pandas", "matplotlib"),
     "stream": ("serial",),
     "dask": ("dask", "distributed"),
 }

@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-from togglecf.core.extras import require
 
 __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
@@ -284,8 +283,10 @@ def trial_fields(path) -> set[str]:
 
 
 def _h5py():
-    """h5py (the ``data`` extra); BROAD's ``.mat`` files need scipy alone."""
-    return require("h5py", extra="data", what="reading HDF5 trial files (.hdf5; .mat files need no extra)")
+    """h5py (a dependency), imported on first use: the command line's --help stays light."""
+    import h5py
+
+    return h5py
 
 
 def _read_hdf5(path: Path):

@@ -22,9 +22,10 @@ from togglecf.data.broad import DatasetIndex
 from togglecf.registry import VQF_TOGGLING
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
+from togglecf.learn.portable import load_portable
 from togglecf.toggling.pretrained import portable_from_model_dir
 
-__all__ = ["NO_HARM_MARGIN", "train_pretrained", "no_harm_check", "model_card", "dataset_notice"]
+__all__ = ["NO_HARM_MARGIN", "train_pretrained", "write_model_card", "no_harm_check", "model_card", "dataset_notice"]
 
 #: the pretrained recipe may be at most this much worse (relative) than VQF on a dataset it never saw
 NO_HARM_MARGIN = 0.02
@@ -79,8 +80,27 @@ def train_pretrained(dirs, out_dir, lodo: dict | None = None, verbose: bool = Tr
         "no_harm": no_harm_check(lodo) if lodo else {},
     }
     path = portable_from_model_dir(model_dir, out_dir / "learned_vqf.npz", metadata)  # no commit, no date: same
-    atomic_write_text(out_dir / "MODEL_CARD.md", model_card(metadata, lodo, dirs, file_sha256(path)))  # bytes
+    write_model_card(out_dir, lodo, dirs)  # bytes for the same model
     return path
+
+
+def write_model_card(out_dir, lodo: dict | None, dirs) -> Path:
+    """``out_dir/MODEL_CARD.md`` for the portable ``out_dir/learned_vqf.npz`` (its metadata)."""
+    path = Path(out_dir) / "learned_vqf.npz"
+    meta = load_portable(path).metadata
+    return atomic_write_text(Path(out_dir) / "MODEL_CARD.md", model_card(meta, lodo, dirs, file_sha256(path)))
+
+
+def _what_it_changes(mode: str, s: dict) -> str:
+    """One sentence: how the learned settings of ``mode`` differ from VQF's (the core's) own."""
+    same_tau = all(v == s["tau_acc"] for v in s["tau_acc_states"])
+    backoff = s["mag_disturbance_scale"] > 0 and mode.endswith("9d")
+    if same_tau and not backoff:
+        return f"{mode}: every learned value equals VQF's: this mode runs VQF itself."
+    if same_tau:
+        return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; what the models change is the heading "
+                f"back-off (σ_m {s['mag_disturbance_scale']:g} µT, on at most the deviation the magnetometer shows).")
+    return f"{mode}: τ_acc per state as above, against VQF's {s['tau_acc']:g} s."
 
 
 def no_harm_check(lodo: dict) -> dict:
@@ -139,7 +159,8 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
     for mode, s in metadata["settings"].items():
         lines.append(f"| {mode} | {', '.join(f'{v:g}' for v in s['tau_acc_states'])} | {s['confidence_floor']:g} | "
                      f"{s['mag_disturbance_scale']:g} | {s.get('mag_backoff_measured', False)} |")
-    lines += ["", "Everything else is VQF's default (τ_mag 9 s, rest thresholds 2 °/s and 0.5 m/s², no noise "
+    lines += ["", *[f"- {_what_it_changes(m, s)}" for m, s in metadata["settings"].items()],
+              "", "Everything else is VQF's default (τ_mag 9 s, rest thresholds 2 °/s and 0.5 m/s², no noise "
               "vector subtracted): what does not travel between sensors is not learned "
               "(docs/concepts/vqf-core.md, *Why the learning does no harm off its training data*).", ""]
     if lodo:

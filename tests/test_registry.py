@@ -7,14 +7,27 @@ import numpy as np
 import pytest
 
 from togglecf.filters import FILTERS, MadgwickFilter
-from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec, filter_spec
+from togglecf.core.io import file_sha256
+from togglecf.registry import FILTER_NAMES, LEARNED_VQF, TOGGLING, TRAINED, FilterSpec, filter_spec
+from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.toggling import load_toggling_filter, model_dir_digest
 
 
 def test_names_cover_classic_filters_and_toggling():
-    assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) and TOGGLING in TRAINED
+    assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) | {LEARNED_VQF} and TOGGLING in TRAINED
+
+
+def test_the_pretrained_filter_needs_no_models_and_takes_none():
+    spec = FilterSpec(LEARNED_VQF, use_mag=False)
+    f = spec.build(100.0)
+    assert isinstance(f, LearnedVQF) and f.fs == 100.0 and not f.use_mag
+    assert spec.identity() == file_sha256(PRETRAINED_FILE)  # results journaled with it follow the shipped file
+    assert spec.settings == f.settings
+    for kw in ({"params": {"tau_acc": 1.0}}, {"models": "somewhere"}):
+        with pytest.raises(ValueError, match="pretrained model the package ships"):
+            FilterSpec(LEARNED_VQF, **kw)
 
 
 def test_classic_specs_validate_without_a_rate():

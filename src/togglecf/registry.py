@@ -11,20 +11,25 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from togglecf.core.io import file_sha256
 from togglecf.filters import FILTERS, OrientationFilter
-from togglecf.toggling.gains import load_gains
+from togglecf.filters.vqf_toggling import VQFTogglingSettings
+from togglecf.toggling.gains import load_gains, settings_from_dict
 from togglecf.toggling.load import load_toggling_filter, model_dir_digest
+from togglecf.toggling.pretrained import PRETRAINED_FILE, VQF_MODES, LearnedVQF, load_pretrained
 
-__all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "TRAINED", "FILTER_NAMES", "filter_spec"]
+__all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "LEARNED_VQF", "TRAINED", "FILTER_NAMES", "filter_spec"]
 
 #: CLI name of the trained toggling filter (``--filter toggling --models DIR``)
 TOGGLING = "toggling"
 #: CLI name of the VQF core with learned time constants (``--filter vqf_toggling --models DIR``)
 VQF_TOGGLING = "vqf_toggling"
+#: CLI name of the pretrained learned VQF the package ships (``togglecf.LearnedVQF``; no --models needed)
+LEARNED_VQF = "learned_vqf"
 #: the filters trained by ``togglecf train`` (models + learned gains in a model directory)
 TRAINED = (TOGGLING, VQF_TOGGLING)
 #: every name a command accepts
-FILTER_NAMES = tuple(sorted(FILTERS)) + TRAINED
+FILTER_NAMES = tuple(sorted(FILTERS)) + TRAINED + (LEARNED_VQF,)
 
 
 @dataclass(frozen=True)
@@ -40,6 +45,12 @@ class FilterSpec:
 
     def __post_init__(self):
         object.__setattr__(self, "params", dict(self.params))
+        if self.name == LEARNED_VQF:
+            if self.params or self.models is not None:
+                raise ValueError(f"the {LEARNED_VQF} filter is the pretrained model the package ships: it takes no "
+                                 f"--param and no --models (a model directory runs with --filter {VQF_TOGGLING})")
+            load_pretrained()  # none shipped: refused with what to do
+            return
         if self.name in TRAINED:
             if self.params:
                 raise ValueError(f"the {self.name} filter takes no --param: its models and learned gains come from "
@@ -64,19 +75,26 @@ class FilterSpec:
     @property
     def settings(self):
         """The settings the filter runs with (the learned gains for the toggling filter)."""
+        if self.name == LEARNED_VQF:
+            return settings_from_dict(VQFTogglingSettings, load_pretrained().gains[VQF_MODES[0 if self.use_mag else 1]])
         if self.name in TRAINED:
             return load_gains(self.models, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name].Settings(**self.params)
 
     def build(self, fs: float) -> OrientationFilter:
         """The filter at sampling rate ``fs`` [Hz], freshly initialised."""
+        if self.name == LEARNED_VQF:
+            return LearnedVQF(fs, use_mag=self.use_mag)
         if self.name in TRAINED:
             return load_toggling_filter(self.models, fs, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name](fs, use_mag=self.use_mag, **self.params)
 
     def identity(self):
         """What results computed with this spec depend on beyond name and params (journal keys):
-        the content of the model directory for the toggling filter."""
+        the content of the model directory for the toggling filter, of the shipped model file for the
+        pretrained one."""
+        if self.name == LEARNED_VQF:
+            return file_sha256(PRETRAINED_FILE)
         return model_dir_digest(self.models) if self.name in TRAINED else None
 
     def as_params(self) -> dict:

@@ -15,10 +15,11 @@ from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.data.broad import MAX_INVALID_FRACTION
 from togglecf.metrics.broad import METRICS, group_means
 from togglecf.parallel.backend import sweep_chunk_size
-from togglecf.registry import FilterSpec
+from togglecf.registry import LEARNED_VQF, FilterSpec
 from togglecf.run.scoring import parse_grid
 from togglecf.run.sweep import ResultStore, format_failures, grid_search, journal_path, run_sweep
-from togglecf.toggling.load import training_trials_among
+from togglecf.toggling.load import trained_files_among, training_trials_among
+from togglecf.toggling.pretrained import load_pretrained
 
 __all__ = ["cmd_evaluate", "cmd_tune"]
 
@@ -98,7 +99,10 @@ def cmd_evaluate(args):
     spec = FilterSpec(args.filter, params, models=args.models, use_mag=not args.six_d)
     params, settings = spec.as_params(), spec.settings
     if spec.models:
-        _warn_in_sample(spec.models, index, names)
+        _warn_in_sample(training_trials_among(spec.models, {n: index.available[n] for n in names}), spec.models, names)
+    elif spec.name == LEARNED_VQF:
+        _warn_in_sample(trained_files_among(load_pretrained().metadata.get("data_files", {}),
+                                            {n: index.available[n] for n in names}), "the pretrained learned VQF", names)
     with _sweep_context(args) as (backend, store, chunk):
         sweep = run_sweep(index, names, args.filter, [params], use_mag=not args.six_d, backend=backend, store=store,
                           chunk_size=chunk, on_error="report", desc="evaluate")
@@ -117,12 +121,11 @@ def cmd_evaluate(args):
     return _report_failures(sweep.failed, [], index)
 
 
-def _warn_in_sample(model_dir, index, names) -> None:
-    """One line on stderr when trained models are scored on trials they were trained on."""
-    seen = training_trials_among(model_dir, {n: index.available[n] for n in names})
+def _warn_in_sample(seen, what, names) -> None:
+    """One line on stderr when trained models (``what``) are scored on trials they were trained on (``seen``)."""
     if seen:
         shown = ", ".join(seen[:5]) + (f" and {len(seen) - 5} more" if len(seen) > 5 else "")
-        print(f"warning: {len(seen)} of the {len(names)} trials scored were used to train {model_dir} ({shown}): "
+        print(f"warning: {len(seen)} of the {len(names)} trials scored were used to train {what} ({shown}): "
               "their errors are in-sample, not held out", file=sys.stderr)
 
 

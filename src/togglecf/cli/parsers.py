@@ -99,11 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("evaluate", help="run a filter on BROAD trials and print BROAD's error table")
     add_data_args(sp)
-    sp.add_argument("--filter", required=True, choices=FILTER_CHOICES, metavar="NAME",
-                    help="one of %(choices)s")
+    sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
+                    help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF the package ships)")
     sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="filter setting, repeatable (default: the filter's documented defaults)")
-    sp.add_argument("--models", metavar="DIR", help="toggling filter: a `togglecf train` model directory "
+    sp.add_argument("--models", metavar="DIR", help="toggling / vqf_toggling: a `togglecf train` model directory "
                     "(models + learned gains)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
     sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
@@ -176,22 +176,23 @@ def add_plot_parser(subparsers):
     sp = psub.add_parser("euler", help="roll/pitch/yaw of estimates vs ground truth, and estimate − truth per "
                          "angle (wrapped to ±180°) -> PNG/SVG")
     common(sp)
-    names_in_help(sp.add_argument("--filters", default="madgwick", help="comma-separated filter names (default: "
-                                  "madgwick); any of %(names)s; --models adds toggling"), FILTER_CHOICES)
+    names_in_help(sp.add_argument("--filters", default="learned_vqf", help="comma-separated filter names (default: "
+                                  "learned_vqf, the pretrained learned VQF); any of %(names)s; --models adds toggling"),
+                  FILTER_CHOICES)
     sp.set_defaults(func=run("euler"))
 
     sp = psub.add_parser("error", help="BROAD's total/heading/inclination error over time of several filters "
                          "-> PNG/SVG")
     common(sp)
-    names_in_help(sp.add_argument("--filters", default="madgwick,vqf_core", help="comma-separated filter names "
-                                  "(default: madgwick,vqf_core); any of %(names)s; --models adds toggling"),
+    names_in_help(sp.add_argument("--filters", default="learned_vqf,vqf_core", help="comma-separated filter names "
+                                  "(default: learned_vqf,vqf_core); any of %(names)s; --models adds toggling"),
                   FILTER_CHOICES)
     sp.set_defaults(func=run("error"))
 
     sp = psub.add_parser("3d", help="IMU box of an estimate beside the truth: .gif/.mp4 animation or .png frames")
     common(sp)
-    sp.add_argument("--filter", default="madgwick", choices=FILTER_CHOICES, metavar="NAME",
-                    help="one of %(choices)s (default: madgwick)")
+    sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
+                    help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF)")
     sp.add_argument("--fps", type=int, default=10)
     sp.add_argument("--duration", type=float, default=None, help="animation length [s] (default: min(8, span); "
                     "the trial or --start/--end span is subsampled to fps*duration frames)")
@@ -208,8 +209,9 @@ def add_stream_parser(subparsers):
     src.add_argument("--port", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0 or COM3 (the [stream] extra)")
     src.add_argument("--input", metavar="FILE", help="read lines from a file, or - for stdin")
     sp.add_argument("--baud", type=int, default=115200)
-    sp.add_argument("--filter", default="madgwick", choices=FILTER_CHOICES, metavar="NAME", help="one of %(choices)s")
-    sp.add_argument("--models", metavar="DIR", help="model directory for --filter toggling")
+    sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
+                    help="one of %(choices)s (learned_vqf: the pretrained learned VQF)")
+    sp.add_argument("--models", metavar="DIR", help="model directory for --filter toggling / vqf_toggling")
     sp.add_argument("--units", default="gyr=rad/s,acc=m/s2,mag=uT",
                     help="input units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; acc: m/s2|g|mg; "
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")

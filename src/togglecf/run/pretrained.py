@@ -76,6 +76,7 @@ def train_pretrained(dirs, out_dir, lodo: dict | None = None, verbose: bool = Tr
         "togglecf": __version__, "seed": meta.get("seed"),
         "datasets": datasets, "classes": meta["classes"],
         "training_trials": len(meta["training_trials"]),
+        "data_files": meta["data_files"],  # trial -> file name and sha256: evaluate flags in-sample scores
         "settings": {m: gains[m]["settings"] for m in ("vqf_9d", "vqf_6d") if m in gains},
         "no_harm": no_harm_check(lodo) if lodo else {},
     }

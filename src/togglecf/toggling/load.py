@@ -62,8 +62,14 @@ def training_trials_among(model_dir, files: dict) -> list[str]:
     on: a file of the same name and content (sha256) as one its metadata lists, wherever it lies,
     so that a score on them can be flagged as in-sample."""
     meta = json.loads((Path(model_dir) / "metadata.json").read_text())
+    return trained_files_among(meta.get("data_files", {}), files)
+
+
+def trained_files_among(data_files: dict, files: dict) -> list[str]:
+    """The names of ``files`` (trial name -> path) among ``data_files`` (a model's training files:
+    anything -> ``{"file": name, "sha256": ...}``), by file name and content."""
     trained = {}
-    for v in meta.get("data_files", {}).values():
+    for v in data_files.values():
         trained.setdefault(Path(v["file"]).name, set()).add(v.get("sha256"))
     return [name for name, path in files.items()
             if Path(path).name in trained and Path(path).is_file() and file_sha256(path) in trained[Path(path).name]]

@@ -22,7 +22,7 @@ from togglecf.toggling.gains import GAINS_FILE, check_gains_format, settings_fro
 from togglecf.toggling.inloop import ModelVQFTogglingFilter
 from togglecf.toggling.load import load_compiled_models
 
-__all__ = ["LearnedVQF", "PRETRAINED_DIR", "PRETRAINED_FILE", "MODEL_CARD_FILE", "load_pretrained",
+__all__ = ["LearnedVQF", "PRETRAINED_DIR", "PRETRAINED_FILE", "MODEL_CARD_FILE", "VQF_MODES", "load_pretrained",
            "portable_from_model_dir"]
 
 #: where the package keeps the pretrained model and its card

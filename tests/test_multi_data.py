@@ -3,6 +3,7 @@ their dataset, selection by dataset, and trials without ``opt_pos`` (evaluation 
 refuses with one line naming file, field and why)."""
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -180,30 +181,35 @@ def test_missing_required_field_is_still_named(tmp_path):
         load_trial(path)
 
 
-def test_labels_refuse_a_trial_without_opt_pos(no_pos_dir):
+def test_labels_without_opt_pos_come_from_the_reference_orientation(no_pos_dir, mini_index, mini_names):
+    """No optical position: the linear acceleration is the IMU's specific force beyond R_trueᵀ g, smoothed
+    as the optical derivative is. Against the optical labels of the same trials, measured (real cuts):
+    98.6 % of the valid samples agree on slow rotation (02), 80.3 % on fast rotation (07: the IMU feels
+    the centripetal acceleration at its own place, which the markers' position does not, so more
+    vibration and less linear acceleration), 92.9 % on tapping (24). Bounds: 95 % and 75 %."""
     t = load_trial(no_pos_dir / f"{MINI_NAMES[0]}.hdf5")
-    with pytest.raises(DataError) as err:
-        make_targets(t)
-    msg = str(err.value)
-    assert msg.startswith(str(t.source)) and "field 'opt_pos': missing" in msg and "\n" not in msg
-    assert "linear acceleration" in msg and "evaluation does not need it" in msg
+    assert t.opt_pos is None
+    imu = make_targets(t)
+    assert imu.lin_acc_source == "imu" and imu.valid.mean() > 0.9
+    agree = []
+    for n in mini_names:
+        full = mini_index.load(n)
+        a, b = make_targets(full), make_targets(replace(full, opt_pos=None))
+        assert a.lin_acc_source == "opt_pos" and b.lin_acc_source == "imu"
+        v = a.valid & b.valid
+        agree.append(float((a.state[v] == b.state[v]).mean()))
+    assert agree[0] > 0.95 and min(agree) > 0.75, agree
 
 
-def test_train_without_opt_pos_says_which_file_and_field(no_pos_dir, tmp_path, capsys):
+def test_train_takes_trials_without_opt_pos_and_says_where_labels_came_from(no_pos_dir, tmp_path):
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY_TRAIN_TOML)
     rc = main(["train", "--config", str(cfg), "--data", str(MINI_DIR), "--data", str(no_pos_dir),
                "--trials", f"{DS}/02,{DS}/07,nopos/02", "--out", str(tmp_path / "m"), "--no-cv"])
-    assert rc == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1
-    assert str(no_pos_dir / f"{MINI_NAMES[0]}.hdf5") in err[0] and "field 'opt_pos': missing" in err[0]
-    assert not (tmp_path / "m").exists()  # refused before any work
-    # two such trials: one line each
-    rc = main(["train", "--config", str(cfg), "--data", str(no_pos_dir), "--out", str(tmp_path / "m"), "--no-cv"])
-    assert rc == 1
-    err = capsys.readouterr().err
-    assert err.count("field 'opt_pos': missing") == 2 and len(err.strip().splitlines()) == 2
+    assert rc == 0
+    per = json.loads((tmp_path / "m" / "metadata.json").read_text())["per_trial"]
+    assert per[f"nopos/{MINI_NAMES[0]}"]["lin_acc_source"] == "imu"
+    assert per[f"{DS}/{MINI_NAMES[0]}"]["lin_acc_source"] == "opt_pos"
 
 
 def test_train_on_two_directories_from_config(two_dirs, tmp_path):

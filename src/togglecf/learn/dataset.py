@@ -66,7 +66,7 @@ def trial_windows(index: DatasetIndex, name, label_settings, feature_settings, r
                 train_mask=valid & inl if ransac else valid, eval_mask=valid & inl, end=ends)
     counts = np.bincount(t.state[t.valid], minlength=len(t.state_names))
     info = {"n_samples": trial.n_samples, "fs": float(trial.fs), "valid_fraction": float(t.valid.mean()),
-            "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)),
+            "inlier_fraction": t.inlier_fraction, "n_windows": int(len(ends)), "lin_acc_source": t.lin_acc_source,
             "state_fractions": dict(zip(t.state_names, (counts / max(1, counts.sum())).tolist())),
             "mag_ref": t.mag_ref.tolist(), "file": index.available[name].name,
             "sha256": file_sha256(index.available[name])}

@@ -13,6 +13,11 @@ Pipeline for one trial (``make_targets``):
    an optional centred moving average of ``smooth_s`` seconds.
 3. ``linear_acceleration``: second derivative of ``opt_pos`` (Savitzky–Golay, window
    ``savgol_s``, cubic) in the earth frame, rotated into the sensor frame with ``R_trueᵀ``.
+   A trial without ``opt_pos`` (``Trial.opt_pos`` None, or no finite row): labels from the reference
+   orientation alone, ``linear_acceleration_from_imu``: the centred ``savgol_s`` moving mean of
+   ``a_meas − R_trueᵀ g`` (the specific force the IMU measures beyond gravity, smoothed as the optical
+   derivative is). Step 6 then has no independent acceleration to check against: every valid sample
+   is an inlier (``Targets.lin_acc_source`` says which source was used).
 4. ``noise_targets``: ``η_a = a_meas − R_trueᵀ g`` with ``g = [0, 0, 9.81]`` (ENU) and
    ``η_m = m_meas − R_trueᵀ m_ref``; ``m_ref`` is the median of the earth-frame field
    ``R_true m_meas`` over static valid samples (``estimate_mag_ref``).
@@ -51,7 +56,7 @@ from togglecf.data.broad import GRAVITY, DataError, Trial
 
 __all__ = [
     "STATE_NAMES", "BINARY_NAMES", "LabelSettings", "Targets", "bridge_gaps", "angular_velocity",
-    "linear_acceleration", "estimate_mag_ref", "noise_targets", "motion_state", "ransac_inliers",
+    "linear_acceleration", "linear_acceleration_from_imu", "estimate_mag_ref", "noise_targets", "motion_state", "ransac_inliers",
     "make_targets", "state_names", "LABEL_FIELDS", "missing_label_field",
 ]
 
@@ -64,11 +69,9 @@ G_ENU = np.array([0.0, 0.0, GRAVITY])
 #: acceleration would have to come from the accelerometer itself (``a_meas − R_trueᵀ g``), which makes
 #: the vibration residual identically zero and the RANSAC check of the reference vacuous, i.e. a
 #: different label set mixed silently with this one.
-LABEL_FIELDS = {
-    "opt_pos": "training needs it for the labels (the motion state's linear acceleration is the second derivative "
-               "of the optical position; the vibration label and the RANSAC cleaning use it too); evaluation does "
-               "not need it, so leave this trial out of training (--trials) or add opt_pos [m, (N,3)]",
-}
+#: field -> why training needs it beyond what evaluation reads (none today: without ``opt_pos`` the labels
+#: come from the reference orientation alone, ``linear_acceleration_from_imu``)
+LABEL_FIELDS: dict = {}
 
 
 def missing_label_field(source, field_name: str) -> DataError:
@@ -137,6 +140,7 @@ class Targets:
     mag_ref: np.ndarray      # (3,) earth-frame field [µT]
     inlier_fraction: float   # inliers / valid samples
     state_names: tuple
+    lin_acc_source: str = "opt_pos"  # "opt_pos", or "imu" (no optical position: linear_acceleration_from_imu)
 
     @property
     def train_mask(self) -> np.ndarray:
@@ -270,6 +274,15 @@ def noise_targets(acc, mag, q_ref, mag_ref):
     return eta_a, eta_m
 
 
+def linear_acceleration_from_imu(acc, q_ref, fs: float, savgol_s: float = 0.1) -> np.ndarray:
+    """Linear acceleration in the sensor frame [m/s²] ``(N, 3)`` without an optical position: the centred
+    moving mean (window ``round(savgol_s·fs)`` samples, forced odd) of ``a_meas − R_trueᵀ g``. It carries the
+    accelerometer's own errors and the reference's tilt errors (2° of tilt: 0.34 m/s²), which the optical
+    derivative does not; NaN where the reference orientation is."""
+    f = np.asarray(acc, float) - quat.rotate(quat.conjugate(q_ref), np.broadcast_to(G_ENU, (len(q_ref), 3)))
+    return _centred_mean(f, max(1, int(round(savgol_s * fs)) | 1))
+
+
 def motion_state(omega, lin_acc, acc, q_ref, fs: float, s: LabelSettings) -> np.ndarray:
     """Integer motion state per sample (see the module docstring); -1 where undefined."""
     w = np.linalg.norm(omega, axis=1)
@@ -331,7 +344,9 @@ def make_targets(trial: Trial, settings: LabelSettings | None = None) -> Targets
     fs = trial.fs
     q_ref, q_valid = bridge_gaps(trial.opt_quat, fs, s.max_gap_s)
     omega = angular_velocity(q_ref, fs, s.smooth_s)
-    lin_acc = linear_acceleration(trial.opt_pos, q_ref, fs, s.savgol_s, s.max_gap_s)
+    optical = trial.opt_pos is not None and bool(np.isfinite(trial.opt_pos).all(axis=1).any())
+    lin_acc = (linear_acceleration(trial.opt_pos, q_ref, fs, s.savgol_s, s.max_gap_s) if optical
+               else linear_acceleration_from_imu(trial.acc, q_ref, fs, s.savgol_s))
     state = motion_state(omega, lin_acc, trial.acc, q_ref, fs, s)
     valid = q_valid & (state >= 0)
     rest = valid & (state == 0) if s.label_set == "state4" else valid & (state == 0)
@@ -345,4 +360,4 @@ def make_targets(trial: Trial, settings: LabelSettings | None = None) -> Targets
         arr[~valid] = np.nan
     return Targets(q_ref=q_ref, valid=valid, omega=omega, lin_acc=lin_acc, eta_acc=eta_a, eta_mag=eta_m,
                    state=np.where(valid, state, -1), inlier=inlier, mag_ref=mag_ref, inlier_fraction=frac,
-                   state_names=state_names(s.label_set))
+                   state_names=state_names(s.label_set), lin_acc_source="opt_pos" if optical else "imu")

@@ -155,6 +155,13 @@ def add_train_parser(subparsers):
     return sp
 
 
+def _filters_arg(sp, default: str) -> None:
+    """``--filters`` of a plot: comma-separated filter names, ``default`` shown in the help."""
+    names_in_help(sp.add_argument("--filters", default=default, help=f"comma-separated filter names (default: "
+                                  f"{default}; learned_vqf: the pretrained learned VQF); any of %(names)s; --models "
+                                  "adds toggling"), FILTER_CHOICES)
+
+
 def add_plot_parser(subparsers):
     """``togglecf plot euler|error|3d ...``."""
     p = subparsers.add_parser("plot", help="plot filters' orientation on one trial (Euler angles and their errors, "
@@ -176,17 +183,13 @@ def add_plot_parser(subparsers):
     sp = psub.add_parser("euler", help="roll/pitch/yaw of estimates vs ground truth, and estimate − truth per "
                          "angle (wrapped to ±180°) -> PNG/SVG")
     common(sp)
-    names_in_help(sp.add_argument("--filters", default="learned_vqf", help="comma-separated filter names (default: "
-                                  "learned_vqf, the pretrained learned VQF); any of %(names)s; --models adds toggling"),
-                  FILTER_CHOICES)
+    _filters_arg(sp, "learned_vqf")
     sp.set_defaults(func=run("euler"))
 
     sp = psub.add_parser("error", help="BROAD's total/heading/inclination error over time of several filters "
                          "-> PNG/SVG")
     common(sp)
-    names_in_help(sp.add_argument("--filters", default="learned_vqf,vqf_core", help="comma-separated filter names "
-                                  "(default: learned_vqf,vqf_core); any of %(names)s; --models adds toggling"),
-                  FILTER_CHOICES)
+    _filters_arg(sp, "learned_vqf,vqf_core")
     sp.set_defaults(func=run("error"))
 
     sp = psub.add_parser("3d", help="IMU box of an estimate beside the truth: .gif/.mp4 animation or .png frames")

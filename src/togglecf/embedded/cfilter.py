@@ -3,7 +3,7 @@
 ``export_c_filter(model_dir, out_dir, fs)`` writes into ``out_dir`` (e.g.
 ``build/embedded/NAME/filter/``):
 
-* ``tcf_filter.h`` / ``tcf_filter.c``: hand-written port of ``filters.toggling.inloop_step``
+* ``tcf_filter.h`` / ``tcf_filter.c``: hand-written port of ``toggling.inloop.inloop_batch`` (one sample)
   (streaming features, trees every hop, softmax, toggling step 1-7), float32, no heap, all
   state in one fixed-size ``tcf_filter_t`` (templates shipped in ``togglecf/embedded/``);
 * ``tcf_config.h``: generated: rate, window, hop, EMA constants, the learned gains of

@@ -4,7 +4,7 @@
  * Line-by-line port of (togglecf/...):
  *   features/streaming.py  push_sample, window_features -> tcf_push_sample, tcf_window_features
  *   learn/ranges.py        window_out_of_range          -> tcf_out_of_range
- *   toggling/inloop.py     inloop_step (the model part)  -> tcf_features_push
+ *   toggling/inloop.py     inloop_batch (the model part) -> tcf_features_push
  */
 #include <math.h>
 #include <stddef.h>
@@ -215,7 +215,7 @@ void tcf_features_init(tcf_features_t *f) {
   for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
 }
 
-/* inloop_step, the model part: push the features; at a window end (every TCF_HOP samples once
+/* inloop_batch, the model part of one sample: push the features; at a window end (every TCF_HOP samples once
    the window is full) check the range, evaluate the trees into f->pred (held until the next one). */
 int tcf_features_push(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   int renewed = 0;

@@ -1,6 +1,6 @@
 /* tcf_vqf_toggling.c: the VQF core with learned time constants in C99, float32 (API in
  * tcf_vqf_toggling.h). Port of (togglecf/...):
- *   toggling/inloop.py         inloop_step (models: tcf_features_push) -> tcf_vqft_update_dt
+ *   toggling/inloop.py         inloop_batch, one sample (models: tcf_features_push) -> tcf_vqft_update_dt
  *   filters/vqf_toggling.py    vqf_toggling_step, modulate, reset     -> tcf_vqft_step, tcf_vqft_modulate,
  *                                                                       tcf_vqft_init
  * The core step is tcf_vqf_update_mod (tcf_vqf.c). "step N": the module docstring of

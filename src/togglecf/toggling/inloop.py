@@ -17,7 +17,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.ranges import window_out_of_range
 from togglecf.learn.trees import predict_margin_row, predict_margin_row_complete
 
-__all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "hop_predict", "inloop_step",
+__all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "hop_predict",
            "inloop_batch", "params_by_value"]
 
 
@@ -51,30 +51,21 @@ def hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, 
 
 
 @njit(cache=False)
-def inloop_step(step, state, params, gyr, acc, mag, dt, diag, ring, aux, fparams, last_src, hop, n_classes, predict,
-                forest, feat, margin, pred, low, high, max_out_of_range, fallback):
-    """One sample with the models in the loop: push features; at a window end (every ``hop``
-    samples once the window is full) ``hop_predict`` updates ``pred`` (held until the next hop)
-    and ``fallback``; then the filter's ``step`` with that prediction."""
-    push_sample(ring, aux, fparams, last_src, gyr, acc, mag)
-    L = ring.shape[0]
-    count = int(aux[0])
-    if count >= L and (count - L) % hop == 0:
-        hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range, fallback)
-    step(state, params, gyr, acc, mag, dt, pred, diag)
-
-
-@njit(cache=False)
 def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes, predict, forest,
                  feat, margin, pred, low, high, max_out_of_range, fallback, quat_out, diag_out, pred_out, fallback_out):
-    """``inloop_step`` over all samples, written out here for speed (same results bit for bit):
-    a call of ``inloop_step`` per sample (some 30 arguments, the arrays among them
-    reference-counted) cost as much as the whole VQF core; the samples go to ``push_sample`` and
-    ``step`` as tuples and the step writes a scratch ``diag`` (row views of the input arrays,
-    each reference-counted, cost 0.1 µs per sample); ``params`` as from ``params_by_value``."""
+    """The models in the loop, per sample: push the features (``push_sample``); at a window end (every
+    ``hop`` samples once the window is full) ``hop_predict`` updates ``pred`` (held until the next hop)
+    and ``fallback``; then the filter's ``step`` with that prediction. The one kernel for ``update``
+    (one row) and ``update_batch``: a second, per-sample kernel would be compiled again in every
+    process (a function argument keeps numba from caching either). Written for speed: a call per
+    sample with some 30 arguments, the arrays among them reference-counted, cost as much as the whole
+    VQF core; the samples go to ``push_sample`` and ``step`` as tuples and the step writes a scratch
+    ``diag`` (row views of the input arrays, each reference-counted, cost 0.1 µs per sample);
+    ``params`` as from ``params_by_value``."""
     L = ring.shape[0]
     diag = np.zeros(diag_out.shape[1])
-    # the sample count after the next window end's push (as inloop_step's test, without a division per sample)
+    # the sample count after the next window end's push (count >= L and (count - L) % hop == 0, without a
+    # division per sample)
     done = int(aux[0])
     next_end = L if done < L else L + ((done - L) // hop + 1) * hop
     for i in range(gyr.shape[0]):
@@ -200,11 +191,11 @@ class InLoopModels:
                 self.models.feature_low, self.models.feature_high, self.models.max_out_of_range, self.fallback)
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
+        """One sample (``OrientationFilter.update``): ``update_batch`` of one row, the same kernel."""
         if prediction is not None:
             raise ValueError(f"{type(self).__name__} predicts itself; pass predictions to the filter without models")
-        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
-                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
-        inloop_step(type(self).step, self.state, self._loop_params(), g[0], a[0], m[0], dt_arr[0], self._diag, *self._model_args())
+        self.update_batch(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+                          None if mag is None else np.reshape(mag, (1, 3)), None if dt is None else float(dt))
         return self.quat
 
     def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):

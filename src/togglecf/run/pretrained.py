@@ -181,8 +181,8 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
               "are covered by the leave-one-dataset-out check above only as far as those three differ.",
               "- 6D was not scored leaving datasets out (the harm looked for was in the heading); its settings "
               "come from the same search.",
-              "- The heading needs a magnetometer in µT; data in gauss or mG is refused by the CLI's unit checks "
-              "but not by the Python class.",
+              "- The heading needs a magnetometer in µT, and nothing checks the magnetometer's unit: convert first "
+              "(`togglecf stream --units` does; a trial file must hold µT).",
               "- Where the models never saw data like the input (a window outside the training ranges) the filter "
               "falls back to VQF's own settings.", "",
               "## Licences of the training data", ""]

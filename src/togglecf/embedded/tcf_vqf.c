@@ -54,8 +54,8 @@ static void q_unit(float q[4]) {
   q[0] *= r; q[1] *= r; q[2] *= r; q[3] *= r;
 }
 
-/* rotate v from sensor to earth by unit q (rotate_scalar) */
-static void q_rotate(const float q[4], const float v[3], float out[3]) {
+/* rotate v from sensor to earth by unit q (rotate_scalar); tcf_vqf.h */
+void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]) {
   float w = q[0], x = q[1], y = q[2], z = q[3];
   float tx = 2.0f * (y * v[2] - z * v[1]);
   float ty = 2.0f * (z * v[0] - x * v[2]);
@@ -360,11 +360,11 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
         f->rest = 0u;
       }
     }
-    q_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
+    tcf_vqf_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
     ready = lp_begin(&f->acc_h);  /* Alg. 1 l. 10 */
     for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &m->acc_lp);
     lp_end(&f->acc_h, f->acc_lp, 3, ready, p->tau_acc, ts);
-    q_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
+    tcf_vqf_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
     na = sqrtf(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2]);
     if (na > 0.0f && na < INFINITY) {
       float rn = 1.0f / na, ax = ae[0] * rn, ay = ae[1] * rn, az = ae[2] * rn;  /* Alg. 1 l. 12 */
@@ -419,7 +419,7 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
   /* ---------------- magnetometer (9D) */
   if (p->use_mag && vector_ok(mag)) {
     float me[3], dis, kinit;
-    q_rotate(q6, mag, me);  /* Alg. 1 l. 17 */
+    tcf_vqf_rotate(q6, mag, me);  /* Alg. 1 l. 17 */
     if (p->mag_rejection) {
       float nrm = sqrtf(me[0] * me[0] + me[1] * me[1] + me[2] * me[2]);  /* (M1) */
       float dip = -asinf(clipf(me[2] / nrm, 1.0f)), ref_n, cand_n;

@@ -178,6 +178,9 @@ void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float si
 void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
                         const tcf_vqf_mod_t *m);
 
+/* out = v rotated from sensor to earth by the unit quaternion q [w, x, y, z] (out may alias v). */
+void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]);
+
 /* Current orientation q[4] = [w x y z], sensor -> ENU (identity before the first sample). */
 void tcf_vqf_quat(const tcf_vqf_t *f, float q[4]);
 

@@ -130,18 +130,16 @@ static void tcf_vqft_follow(tcf_vqft_t *f) {
 
 #if TCF_USE_MAG
 /* _field_deviation_sq: the disturbance the magnetometer shows [uT^2], the least |m - m_ref|^2 over the
-   unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame
-   (only the z row of R(q) is needed); 0 without a reference or for an invalid sample */
+   unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame;
+   0 without a reference or for an invalid sample */
 static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
-  const float *q = c->q;
-  float n_ref = c->mag_ref_norm, n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2], n, mz, dip, d2;
+  float n_ref = c->mag_ref_norm, n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2], n, me[3], mz, d2;
   if (!(n_ref > 0.0f && n2 > 0.0f && n2 < INFINITY)) return 0.0f;
   n = sqrtf(n2);
-  mz = 2.0f * (q[1] * q[3] - q[0] * q[2]) * m[0] + 2.0f * (q[2] * q[3] + q[0] * q[1]) * m[1]
-       + (1.0f - 2.0f * (q[1] * q[1] + q[2] * q[2])) * m[2];
-  mz /= n;
-  dip = -asinf(mz < -1.0f ? -1.0f : (mz > 1.0f ? 1.0f : mz));
-  d2 = n2 + n_ref * n_ref - 2.0f * n * n_ref * cosf(dip - c->mag_ref_dip);
+  tcf_vqf_rotate(c->q, m, me);
+  mz = me[2] / n;
+  d2 = n2 + n_ref * n_ref - 2.0f * n * n_ref * cosf(-asinf(mz < -1.0f ? -1.0f : (mz > 1.0f ? 1.0f : mz))
+                                                       - c->mag_ref_dip);
   return d2 > 0.0f ? d2 : 0.0f;
 }
 

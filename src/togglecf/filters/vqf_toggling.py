@@ -228,7 +228,7 @@ def modulate(state, p, pred):
         e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
         if e >= 0.0:  # False for NaN
             e_pred = e
-    k_mag = gain_from_tau(tau_mag, p.ts) / (1.0 + e_pred)  # exact for e = 0: the core's k_mag bit for bit
+    k_mag = gain_from_tau(tau_mag, p.ts)  # the back-off (e_pred): _heading_gain, every sample
     mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
            math.exp(2.0 * lg), math.exp(2.0 * lc))
     first = 0 if p.modulation_gain >= 1.0 else _N_FOLLOWED  # followed: τ_acc's coefficients and k_mag by _follow

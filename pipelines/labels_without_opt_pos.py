@@ -16,12 +16,11 @@ import shutil
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from togglecf.core.io import atomic_write_text
 from togglecf.core.log import setup_logging
-from togglecf.data.broad import DatasetIndex
+from togglecf.data.broad import DatasetIndex, copy_hdf5_trial
 from togglecf.filters import VQFCoreFilter
 from togglecf.metrics.broad import trial_errors
 from togglecf.run.config import load_config
@@ -36,12 +35,7 @@ def without_opt_pos(src: Path, dest: Path) -> Path:
     """``src`` (a directory in BROAD's layout of HDF5 trials) copied to ``dest`` without ``opt_pos``."""
     dest.mkdir(parents=True, exist_ok=True)
     for f in sorted(src.glob("*.hdf5")):
-        with h5py.File(f, "r") as fi, h5py.File(dest / f.name, "w") as fo:
-            for k in fi:
-                if k != "opt_pos":
-                    fo.create_dataset(k, data=fi[k][()])
-            for k, v in fi.attrs.items():
-                fo.attrs[k] = v
+        copy_hdf5_trial(f, dest / f.name, drop=("opt_pos",))
     shutil.copyfile(src / "trials.json", dest / "trials.json")
     return dest
 

@@ -6,12 +6,12 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
-import h5py
 import pytest
 
 from conftest import TINY_TRAIN_TOML
 from togglecf.cli.main import main
-from togglecf.data.broad import DataError, DatasetIndex, MultiIndex, load_trial, open_index, trial_fields
+from togglecf.data.broad import (DataError, DatasetIndex, MultiIndex, copy_hdf5_trial, load_trial, open_index,
+                                 trial_fields)
 from togglecf.learn.labels import make_targets
 from togglecf.parallel.backend import data_location, load_trial_cached
 
@@ -40,13 +40,7 @@ def _without_opt_pos(src: Path, dest_dir: Path, name: str) -> Path:
     """``src`` (a BROAD HDF5 trial) rewritten as ``dest_dir/name.hdf5`` without ``opt_pos``, listed in
     ``dest_dir/trials.json`` (groups ``all_trials`` and ``undisturbed``)."""
     dest_dir.mkdir(parents=True, exist_ok=True)
-    path = dest_dir / f"{name}.hdf5"
-    with h5py.File(src, "r") as fi, h5py.File(path, "w") as fo:
-        for k in fi:
-            if k != "opt_pos":
-                fo.create_dataset(k, data=fi[k][()])
-        for k, v in fi.attrs.items():
-            fo.attrs[k] = v
+    path = copy_hdf5_trial(src, dest_dir / f"{name}.hdf5", drop=("opt_pos",))
     index_file = dest_dir / "trials.json"
     info = json.loads(index_file.read_text()) if index_file.exists() else {
         "groups": [{"name": "all_trials"}, {"name": "undisturbed"}], "trials": {}}
@@ -171,12 +165,7 @@ def test_trial_without_opt_pos_loads_and_evaluates(no_pos_dir, tmp_path, capsys)
 
 
 def test_missing_required_field_is_still_named(tmp_path):
-    path = tmp_path / "x.hdf5"
-    with h5py.File(MINI_DIR / f"{MINI_NAMES[0]}.hdf5", "r") as fi, h5py.File(path, "w") as fo:
-        for k in fi:
-            if k != "movement":
-                fo.create_dataset(k, data=fi[k][()])
-        fo.attrs["sampling_rate"] = fi.attrs["sampling_rate"]
+    path = copy_hdf5_trial(MINI_DIR / f"{MINI_NAMES[0]}.hdf5", tmp_path / "x.hdf5", drop=("movement",))
     with pytest.raises(DataError, match=r"field 'movement': missing dataset"):
         load_trial(path)
 

@@ -7,8 +7,8 @@ and ``sampling_rate`` [Hz]; ``trials.json`` lists the 39 trials and 16 groups.
 
 Any directory in this layout works (``trials.json`` + one file per trial). Evaluation needs only
 ``imu_gyr``, ``imu_acc``, ``imu_mag``, ``opt_quat``, ``movement`` and ``sampling_rate``;
-``opt_pos`` is optional (``Trial.opt_pos`` is ``None`` without it) and only training's labels
-need it (``togglecf.learn.labels.LABEL_FIELDS``).
+``opt_pos`` is optional (``Trial.opt_pos`` is ``None`` without it): training's labels use it when
+present (``togglecf.learn.labels``).
 
 Several directories at once: ``open_index([A, B])`` (or ``DatasetIndex.from_dirs``) gives a
 ``MultiIndex`` with the same interface, whose trial names carry their dataset
@@ -32,7 +32,7 @@ __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
     "check_evaluable", "MultiIndex", "open_index", "resolve_data_dirs", "trial_fields", "REQUIRED_FIELDS",
-    "OPTIONAL_FIELDS", "short_trial_name",
+    "OPTIONAL_FIELDS", "short_trial_name", "copy_hdf5_trial",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -262,7 +262,7 @@ def check_evaluable(trial: Trial) -> Trial:
 
 #: what every trial file must hold (besides ``sampling_rate``): all that evaluation needs
 REQUIRED_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement")
-#: read when present: ``opt_pos`` (only training's labels need it, ``togglecf.learn.labels.LABEL_FIELDS``)
+#: read when present: ``opt_pos`` (training's labels use it, ``togglecf.learn.labels``)
 OPTIONAL_FIELDS = ("opt_pos",)
 _REQUIRED = REQUIRED_FIELDS
 
@@ -287,6 +287,20 @@ def _h5py():
     import h5py
 
     return h5py
+
+
+def copy_hdf5_trial(src, dest, drop=()) -> Path:
+    """The HDF5 trial file ``src`` copied to ``dest`` with its attributes, without the datasets ``drop``
+    (e.g. ``("opt_pos",)``: a recording without an optical position)."""
+    h5py = _h5py()
+    dest = Path(dest)
+    with h5py.File(src, "r") as fi, h5py.File(dest, "w") as fo:
+        for k in fi:
+            if k not in drop:
+                fo.create_dataset(k, data=fi[k][()])
+        for k, v in fi.attrs.items():
+            fo.attrs[k] = v
+    return dest
 
 
 def _read_hdf5(path: Path):

@@ -52,31 +52,17 @@ from scipy.signal import savgol_filter
 from togglecf.core import quaternion as quat
 from togglecf.core.extras import require
 from togglecf.core.io import check_keys
-from togglecf.data.broad import GRAVITY, DataError, Trial
+from togglecf.data.broad import GRAVITY, Trial
 
 __all__ = [
     "STATE_NAMES", "BINARY_NAMES", "LabelSettings", "Targets", "bridge_gaps", "angular_velocity",
-    "linear_acceleration", "linear_acceleration_from_imu", "estimate_mag_ref", "noise_targets", "motion_state", "ransac_inliers",
-    "make_targets", "state_names", "LABEL_FIELDS", "missing_label_field",
+    "linear_acceleration", "linear_acceleration_from_imu", "estimate_mag_ref", "noise_targets", "motion_state",
+    "ransac_inliers", "make_targets", "state_names",
 ]
 
 STATE_NAMES = ("rest", "rotation", "linear_acceleration", "vibration")
 BINARY_NAMES = ("static", "dynamic")
 G_ENU = np.array([0.0, 0.0, GRAVITY])
-
-#: the fields the training labels need beyond what evaluation needs (``data.broad.REQUIRED_FIELDS``),
-#: and why. Without ``opt_pos`` training refuses the trial rather than make other labels: the linear
-#: acceleration would have to come from the accelerometer itself (``a_meas − R_trueᵀ g``), which makes
-#: the vibration residual identically zero and the RANSAC check of the reference vacuous, i.e. a
-#: different label set mixed silently with this one.
-#: field -> why training needs it beyond what evaluation reads (none today: without ``opt_pos`` the labels
-#: come from the reference orientation alone, ``linear_acceleration_from_imu``)
-LABEL_FIELDS: dict = {}
-
-
-def missing_label_field(source, field_name: str) -> DataError:
-    """The one-line error for a trial (file ``source``) without the label field ``field_name``."""
-    return DataError(source, field_name, f"missing: {LABEL_FIELDS[field_name]}")
 
 
 def state_names(label_set: str) -> tuple[str, ...]:
@@ -268,10 +254,13 @@ def estimate_mag_ref(mag, q_ref, mask) -> np.ndarray:
 
 def noise_targets(acc, mag, q_ref, mag_ref):
     """``η_a = a_meas − R_trueᵀ g`` and ``η_m = m_meas − R_trueᵀ m_ref`` (sensor frame, (N, 3))."""
-    q_inv = quat.conjugate(q_ref)
-    eta_a = np.asarray(acc, float) - quat.rotate(q_inv, G_ENU)
-    eta_m = np.asarray(mag, float) - quat.rotate(q_inv, np.asarray(mag_ref, float))
-    return eta_a, eta_m
+    eta_m = np.asarray(mag, float) - quat.rotate(quat.conjugate(q_ref), np.asarray(mag_ref, float))
+    return _beyond_gravity(acc, q_ref), eta_m
+
+
+def _beyond_gravity(acc, q_ref) -> np.ndarray:
+    """``a_meas − R_trueᵀ g`` (sensor frame, (N, 3)): η_a, and the linear acceleration before smoothing."""
+    return np.asarray(acc, float) - quat.rotate(quat.conjugate(q_ref), G_ENU)
 
 
 def linear_acceleration_from_imu(acc, q_ref, fs: float, savgol_s: float = 0.1) -> np.ndarray:
@@ -279,8 +268,7 @@ def linear_acceleration_from_imu(acc, q_ref, fs: float, savgol_s: float = 0.1) -
     moving mean (window ``round(savgol_s·fs)`` samples, forced odd) of ``a_meas − R_trueᵀ g``. It carries the
     accelerometer's own errors and the reference's tilt errors (2° of tilt: 0.34 m/s²), which the optical
     derivative does not; NaN where the reference orientation is."""
-    f = np.asarray(acc, float) - quat.rotate(quat.conjugate(q_ref), np.broadcast_to(G_ENU, (len(q_ref), 3)))
-    return _centred_mean(f, max(1, int(round(savgol_s * fs)) | 1))
+    return _centred_mean(_beyond_gravity(acc, q_ref), max(1, int(round(savgol_s * fs)) | 1))
 
 
 def motion_state(omega, lin_acc, acc, q_ref, fs: float, s: LabelSettings) -> np.ndarray:
@@ -338,9 +326,6 @@ def ransac_inliers(acc, predicted, valid, threshold: float, seed: int = 0, max_t
 def make_targets(trial: Trial, settings: LabelSettings | None = None) -> Targets:
     """All targets of one trial (see the module docstring)."""
     s = settings or LabelSettings()
-    for name in LABEL_FIELDS:
-        if getattr(trial, name, None) is None:
-            raise missing_label_field(trial.source if trial.source is not None else trial.name, name)
     fs = trial.fs
     q_ref, q_valid = bridge_gaps(trial.opt_quat, fs, s.max_gap_s)
     omega = angular_velocity(q_ref, fs, s.smooth_s)

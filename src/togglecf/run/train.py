@@ -19,14 +19,14 @@ import scipy
 from togglecf import __version__
 from togglecf.core.extras import deferred
 from togglecf.core.io import atomic_write_text
-from togglecf.data.broad import open_index, short_trial_name, trial_fields
+from togglecf.data.broad import open_index, short_trial_name
 from togglecf.features.windows import FeatureSettings, feature_schema
 from togglecf.learn.compiled import hold_predictions
 from togglecf.learn.cv import cross_validate, format_cv_table
 from togglecf.learn.dask_fit import fit_models_dask
 from togglecf.learn.dataset import WindowData, build_dataset, dataset_settings
 from togglecf.learn.fitting import fit_all, importances_csv
-from togglecf.learn.labels import LABEL_FIELDS, LabelSettings, missing_label_field, state_names
+from togglecf.learn.labels import LabelSettings, state_names
 from togglecf.learn.models import save_bundle
 from togglecf.learn.ranges import feature_ranges
 from togglecf.parallel.backend import InlineBackend, make_backend
@@ -86,18 +86,6 @@ def _data_dir_meta(index):
     return [str(r) for r in root] if isinstance(root, (tuple, list)) else str(root)
 
 
-def _check_label_fields(index, names):
-    """Refuse, before any work, trials whose files lack a field the training labels need
-    (``learn.labels.LABEL_FIELDS``): a ``DataError`` naming the file, the field and why; with several
-    such trials a ``ValueError`` with one such line per trial."""
-    errors = [missing_label_field(index.available[n], f) for n in names
-              for f in LABEL_FIELDS if f not in trial_fields(index.available[n])]
-    if len(errors) == 1:
-        raise errors[0]
-    if errors:
-        raise ValueError("\n".join(str(e) for e in errors))
-
-
 def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) -> dict:
     t_start = time.perf_counter()
     cfg = load_config(config)
@@ -107,8 +95,6 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     names = index.select(spec)
     if len(names) < 2:
         raise ValueError(f"training needs at least 2 trials, got {names}")
-    if dataset is None:
-        _check_label_fields(index, names)
     label_settings = LabelSettings.from_dict({**cfg["labels"], "seed": run["seed"]})
     feature_settings = FeatureSettings.from_dict(cfg["features"])
     schema = feature_schema(feature_settings)

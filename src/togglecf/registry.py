@@ -13,10 +13,9 @@ from pathlib import Path
 
 from togglecf.core.io import file_sha256
 from togglecf.filters import FILTERS, OrientationFilter
-from togglecf.filters.vqf_toggling import VQFTogglingSettings
-from togglecf.toggling.gains import load_gains, settings_from_dict
+from togglecf.toggling.gains import load_gains
 from togglecf.toggling.load import load_toggling_filter, model_dir_digest
-from togglecf.toggling.pretrained import PRETRAINED_FILE, VQF_MODES, LearnedVQF, load_pretrained
+from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, load_pretrained, pretrained_settings
 
 __all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "LEARNED_VQF", "TRAINED", "FILTER_NAMES", "filter_spec"]
 
@@ -76,7 +75,7 @@ class FilterSpec:
     def settings(self):
         """The settings the filter runs with (the learned gains for the toggling filter)."""
         if self.name == LEARNED_VQF:
-            return settings_from_dict(VQFTogglingSettings, load_pretrained().gains[VQF_MODES[0 if self.use_mag else 1]])
+            return pretrained_settings(self.use_mag)
         if self.name in TRAINED:
             return load_gains(self.models, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name].Settings(**self.params)

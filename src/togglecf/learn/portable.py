@@ -12,7 +12,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +26,7 @@ __all__ = ["PORTABLE_FORMAT", "PortableModel", "save_portable", "load_portable"]
 
 #: version of the file layout below
 PORTABLE_FORMAT = 1
-_FOREST_ARRAYS = ("feature", "threshold", "left", "right", "default_left", "value", "roots", "tree_group",
-                  "base_margin")
+_RANGE_ARRAYS = ("feature_low", "feature_high")
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # fixed: the same model, the same bytes
 
 
@@ -54,8 +53,7 @@ def save_portable(path, models: CompiledModels, gains: dict, metadata: dict) -> 
               "feature_settings": asdict(models.feature_settings), "schema_hash": models.schema_hash,
               "max_out_of_range": models.max_out_of_range, "link": f.link, "n_features": int(f.n_features),
               "gains": gains, "metadata": metadata}
-    arrays = {name: getattr(f, name) for name in _FOREST_ARRAYS}
-    arrays.update(feature_low=models.feature_low, feature_high=models.feature_high)
+    arrays = {**f.as_arrays(), "feature_low": models.feature_low, "feature_high": models.feature_high}
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as z:
         z.writestr(zipfile.ZipInfo("header.json", _ZIP_TIME),
@@ -85,11 +83,13 @@ def load_portable(path) -> PortableModel:
     if header.get("feature_version") != FEATURE_VERSION:
         raise ValueError(f"{path}: trained on feature schema v{header.get('feature_version')}, this togglecf "
                          f"computes v{FEATURE_VERSION}: retrain it with `togglecf train`")
-    missing = [n for n in (*_FOREST_ARRAYS, "feature_low", "feature_high") if n not in arrays]
+    missing = [n for n in _RANGE_ARRAYS if n not in arrays]
     if missing:
         raise ValueError(f"{path}: model file without {', '.join(missing)}")
-    kw = {fl.name: arrays[fl.name] for fl in fields(FlatForest) if fl.name in arrays}
-    forest = FlatForest(**kw, link=header["link"], n_features=int(header["n_features"]))
+    try:
+        forest = FlatForest.from_dict({**arrays, "link": header["link"], "n_features": header["n_features"]})
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path}: damaged forest ({e})") from None
     models = CompiledModels(forest, header["class_names"], FeatureSettings.from_dict(header["feature_settings"]),
                             header["schema_hash"], arrays["feature_low"], arrays["feature_high"],
                             header["max_out_of_range"])

@@ -228,15 +228,21 @@ class FlatForest:
         theirs = np.asarray(booster.predict(dm, output_margin=True), np.float64)
         return theirs.reshape(-1)[: self.n_outputs] - ours
 
+    def as_arrays(self) -> dict:
+        """Name -> array of every node and tree array (the dict ``from_dict`` takes, beside ``link`` and
+        ``n_features``)."""
+        return {k: getattr(self, k) for k in _ARRAY_DTYPES}
+
     def to_dict(self) -> dict:
         """The forest in JSON types (``json.dumps`` writes it, ``from_dict`` reads it back bit for bit:
         a float32 is exactly a float64, and JSON keeps every float64)."""
-        return {**{k: getattr(self, k).tolist() for k in _ARRAY_DTYPES}, "link": self.link,
+        return {**{k: v.tolist() for k, v in self.as_arrays().items()}, "link": self.link,
                 "n_features": int(self.n_features)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "FlatForest":
-        """The forest ``to_dict`` wrote (numpy alone: no XGBoost)."""
+        """The forest ``to_dict`` (or ``as_arrays`` with ``link`` and ``n_features``) wrote (numpy alone:
+        no XGBoost); refused when its arrays disagree in length."""
         arrays = {k: np.ascontiguousarray(np.asarray(d[k], dtype=dt)) for k, dt in _ARRAY_DTYPES.items()}
         forest = cls(**arrays, link=str(d["link"]), n_features=int(d["n_features"]))
         n = forest.n_nodes

@@ -38,7 +38,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ class VQFGainSearch:
     field deviation the magnetometer shows (``mag_backoff_measured``), a smaller σ_m backs off on
     the calibration residuals of a consumer magnetometer (a few µT): a sensor quirk, not a
     disturbance. This floor was set after seeing a leave-one-dataset-out result (σ_m = 3 µT, learned
-    on BROAD and the iPhone 4S, made the Nexus 5's swinging trials 7.6 % worse than the core)."""
+    on BROAD and the iPhone 4S, made the Nexus 5's swinging trials worse than the core)."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
     tau_mag: tuple = (9.0,)

@@ -18,19 +18,19 @@ from pathlib import Path
 
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.learn.portable import PortableModel, load_portable, save_portable
-from togglecf.toggling.gains import GAINS_FILE, check_gains_format, settings_from_dict
+from togglecf.toggling.gains import GAINS_FILE, MODES, load_gains, mode_name, settings_from_dict
 from togglecf.toggling.inloop import ModelVQFTogglingFilter
 from togglecf.toggling.load import load_compiled_models
 
 __all__ = ["LearnedVQF", "PRETRAINED_DIR", "PRETRAINED_FILE", "MODEL_CARD_FILE", "VQF_MODES", "load_pretrained",
-           "portable_from_model_dir"]
+           "pretrained_settings", "portable_from_model_dir"]
 
 #: where the package keeps the pretrained model and its card
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
 PRETRAINED_FILE = PRETRAINED_DIR / "learned_vqf.npz"
 MODEL_CARD_FILE = PRETRAINED_DIR / "MODEL_CARD.md"
 #: the gains.json modes a portable learned VQF carries
-VQF_MODES = ("vqf_9d", "vqf_6d")
+VQF_MODES = (mode_name("vqf_toggling", True), mode_name("vqf_toggling", False))
 _LOADED: dict = {}
 
 
@@ -56,20 +56,26 @@ class LearnedVQF(ModelVQFTogglingFilter):
 
     def __init__(self, rate: float, use_mag: bool = True, model=None):
         pm = load_pretrained(model)
-        mode = VQF_MODES[0] if use_mag else VQF_MODES[1]
-        if mode not in pm.gains:
-            raise KeyError(f"{model or PRETRAINED_FILE}: no learned settings for {mode} (has {sorted(pm.gains)})")
-        super().__init__(rate, settings_from_dict(VQFTogglingSettings, pm.gains[mode]), models=pm.models,
-                         use_mag=use_mag)
+        super().__init__(rate, pretrained_settings(use_mag, model), models=pm.models, use_mag=use_mag)
         self.model_metadata = pm.metadata
+
+
+def pretrained_settings(use_mag: bool = True, model=None) -> VQFTogglingSettings:
+    """The learned settings of the portable model ``model`` (default: the shipped one) in 9D or 6D."""
+    pm = load_pretrained(model)
+    mode = mode_name("vqf_toggling", use_mag)
+    if mode not in pm.gains:
+        raise KeyError(f"{model or PRETRAINED_FILE}: no learned settings for {mode} (has {sorted(pm.gains)})")
+    return settings_from_dict(VQFTogglingSettings, pm.gains[mode])
 
 
 def portable_from_model_dir(model_dir, path, metadata: dict) -> Path:
     """Write the learned VQF of a ``togglecf train`` directory (its compiled models and the settings of
     ``VQF_MODES`` in its gains.json) as one portable file with ``metadata``."""
     doc = json.loads((Path(model_dir) / GAINS_FILE).read_text())
-    check_gains_format(doc, Path(model_dir) / GAINS_FILE)
     gains = {m: doc[m]["settings"] for m in VQF_MODES if m in doc}
+    for m in gains:  # the checks of a model directory's gains: format, feature schema of its models
+        load_gains(model_dir, use_mag=MODES[m][1], kind="vqf_toggling")
     if not gains:
         raise KeyError(f"{model_dir}: no learned VQF settings ({', '.join(VQF_MODES)}) in {GAINS_FILE}")
     return save_portable(path, load_compiled_models(model_dir), gains, metadata)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from togglecf.core import quaternion as quat
-from togglecf.toggling.gains import GainSearch, learn_gains, mean_total_rmse
+from togglecf.toggling.gains import EvaluationMemo, GainSearch, learn_gains, mean_total_rmse, trials_digest
 from togglecf.filters.toggling import TogglingSettings
 from togglecf.simulate import imu_from_orientation, random_smooth_trajectory
 
@@ -51,9 +51,28 @@ def test_learned_gains_follow_the_motion_state():
 def test_parallel_objective_equals_serial():
     trials, preds = zip(*(make_trial(s) for s in (3, 4, 5)))
     search = GainSearch(tau=(33.33, 3.328), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,), sweeps=1)
-    serial = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search)
-    parallel = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, jobs=2)
+    serial = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=None)
+    parallel = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, jobs=2, memo=None)
     assert serial == parallel  # same settings and the same objective values, bit for bit
+
+
+def test_memo_gives_the_computed_values_and_is_keyed_on_content():
+    trials, preds = zip(*(make_trial(s) for s in (3, 4)))
+    search = GainSearch(tau=(33.33, 3.328), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,), sweeps=2)
+    plain = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=None)
+    memo = EvaluationMemo()
+    first = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=memo)
+    # the descent's last sweep re-tries points of the sweep before: those come from the memo
+    assert first == plain and memo.hits > 0
+    n_stored, hits = len(memo.values), memo.hits
+    again = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=memo)
+    assert again == plain and len(memo.values) == n_stored and memo.hits > hits  # all from the memo, same floats
+    # other content, other key: a changed prediction or signal is never served a stored value
+    other = [p.copy() for p in preds]
+    other[1][100, 0] = 0.5
+    assert trials_digest(trials, other) != trials_digest(trials, preds)
+    moved = [dataclasses.replace(trials[0], gyr=trials[0].gyr + 1e-12), trials[1]]
+    assert trials_digest(moved, preds) != trials_digest(trials, preds)
 
 
 def test_fused_objective_equals_broad_metric(rng):

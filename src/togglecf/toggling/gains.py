@@ -18,6 +18,7 @@ heading offset removed):
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -38,7 +39,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -275,6 +276,48 @@ def trial_total_rmse(settings, trials, predictions, use_mag: bool = True, pool=N
     return np.array([_trial_total(t, p, settings, use_mag) for t, p in zip(trials, predictions)], np.float64)
 
 
+def trials_digest(trials, predictions) -> str:
+    """sha256 of what a gain evaluation reads: each trial's name, rate, IMU signals, reference and
+    ``movement``, and its predictions (the key of ``EvaluationMemo``)."""
+    h = hashlib.sha256()
+    for t, p in zip(trials, predictions):
+        h.update(f"{t.name}|{float(t.fs)!r}|".encode())
+        for a in (t.gyr, t.acc, t.mag, t.opt_quat, t.movement, p):
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()
+
+
+class EvaluationMemo:
+    """Per-trial total RMSEs already computed in this process, keyed on content (``trials_digest``
+    of the trials and predictions, the settings' ``repr`` with every float exact, 6D/9D): a gain
+    search that meets a setting again (the last sweep of a coordinate descent re-tries what the
+    sweep before tried at the same point; the study's ablations repeat the main search where their
+    grids coincide) takes the stored values, which are the same floats as a recomputation.
+    Bounded: the oldest entries go first beyond ``max_entries``."""
+
+    def __init__(self, max_entries: int = 100_000):
+        self.max_entries = int(max_entries)
+        self.values: dict = {}
+        self.hits = 0
+
+    def get(self, key):
+        v = self.values.get(key)
+        if v is not None:
+            self.hits += 1
+        return v
+
+    def put(self, key, value: np.ndarray) -> None:
+        while len(self.values) >= self.max_entries:
+            self.values.pop(next(iter(self.values)))
+        self.values[key] = np.array(value, np.float64)
+
+
+#: the process's memo of gain evaluations (``learn_gains``)
+EVALUATIONS = EvaluationMemo()
+
+
 def mean_total_rmse(settings: TogglingSettings, trials, predictions, use_mag: bool = True, pool=None) -> float:
     """Mean over trials of BROAD's total RMSE [deg] of the toggling filter with ``settings``."""
     return float(np.mean(trial_total_rmse(settings, trials, predictions, use_mag, pool)))
@@ -306,10 +349,12 @@ class _TrialPool:
 
 
 def learn_gains(trials, predictions, states, static_state, use_mag: bool = True, search: GainSearch | None = None,
-                start: TogglingSettings | None = None, verbose: bool = False, jobs: int = 1):
+                start: TogglingSettings | None = None, verbose: bool = False, jobs: int = 1,
+                memo: EvaluationMemo | None = EVALUATIONS):
     """Coordinate descent from ``start`` (default: moderate gains). Returns ``(settings, history)``
     with ``history`` a list of ``(parameter, value, objective)`` after each accepted step.
-    ``jobs > 1`` spreads the trials over that many forked processes."""
+    ``jobs > 1`` spreads the trials over that many forked processes. ``memo``: evaluations already
+    made (default: this process's ``EVALUATIONS``; ``None``: compute every one)."""
 
     # a daemonic process (a Dask worker, a pool worker) may not fork a pool: evaluate in-process there
     parallel = jobs > 1 and len(trials) > 1 and not mp.current_process().daemon
@@ -317,16 +362,28 @@ def learn_gains(trials, predictions, states, static_state, use_mag: bool = True,
     probe = start or search.start(states, static_state)
     pool = _TrialPool(trials, predictions, jobs, filter_for(probe)) if parallel else None
     try:
-        return _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool)
+        return _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool, memo)
     finally:
         if pool is not None:
             pool.close()
 
 
-def _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool):
+def _descend(trials, predictions, states, static_state, use_mag, search, start, verbose, pool, memo):
     settings = start or search.start(states, static_state)
     datasets = trial_datasets(trials)
-    at_start = trial_total_rmse(settings, trials, predictions, use_mag, pool)
+    digest = trials_digest(trials, predictions) if memo is not None else None
+
+    def rmse_of(s):  # computed once per content and setting (``memo``)
+        if memo is None:
+            return trial_total_rmse(s, trials, predictions, use_mag, pool)
+        key = (digest, repr(s), bool(use_mag))
+        got = memo.get(key)
+        if got is None:
+            got = trial_total_rmse(s, trials, predictions, use_mag, pool)
+            memo.put(key, got)
+        return got
+
+    at_start = rmse_of(settings)
 
     def objective(rmse):
         return objective_value(search.objective, rmse, at_start, datasets)
@@ -342,7 +399,7 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
                 trial_settings = replace(settings, **change)
                 if trial_settings == settings:
                     continue
-                obj = objective(trial_total_rmse(trial_settings, trials, predictions, use_mag, pool))
+                obj = objective(rmse_of(trial_settings))
                 if obj < best - 1e-9:
                     best, settings, improved = obj, trial_settings, True
                     history.append((label, value, obj))

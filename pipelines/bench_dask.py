@@ -40,8 +40,7 @@ QUICK_GRID = ["Kp=0.5,0.7", "Ki=0"]
 
 def _sweep(index, names, params, backend, chunk_size):
     t0 = time.perf_counter()
-    r = run_sweep(index, names, "mahony", params, backend=backend, chunk_size=chunk_size, on_error="raise",
-                  desc="bench")
+    r = run_sweep(index, names, "mahony", params, backend=backend, chunk_size=chunk_size, on_error="raise")
     return time.perf_counter() - t0, r
 
 

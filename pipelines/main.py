@@ -20,26 +20,38 @@ cross-dataset protocol.
    (learned_vqf.npz, MODEL_CARD.md); ``python pipelines/ship_pretrained.py`` puts them in the package
    when every check passed, and says whether the package's copy was the same.
 
+Computed once: the folds of each study and the left-out datasets run as tasks on a local process
+pool; the classic filters' grid results are kept in build/cache/ (keyed on the package's source
+and each trial file) and shared by the steps, so a trial's grid is never computed twice; the gain
+searches reuse an evaluation they have made before (``toggling.gains.EvaluationMemo``). Each
+step's wall time is logged, and all of them at the end.
+
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
     python pipelines/main.py --lodo-only       # steps 4 and 5 alone
     python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
+    python pipelines/main.py --backend dask --scheduler tcp://HOST:8786   # folds and datasets on a cluster
 """
 import argparse
 import json
 import logging
 import os
 import sys
+import time
+from contextlib import contextmanager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
+from togglecf.core.config import BACKENDS
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
 from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_dir
 from togglecf.data.download import download_broad
+from togglecf.parallel.backend import BackendError, make_backend
 from togglecf.run.config import load_config
 from togglecf.run.lodo import dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
 from togglecf.run.pretrained import train_pretrained
 from togglecf.run.study import load_study_config, run_study
+from togglecf.run.sweep import ResultStore, code_digest
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
 
@@ -49,7 +61,29 @@ TRANSFER_DIR = Path("reports/transfer")
 BOTH_DIR = Path("reports/study_both")
 LODO_DIR = Path("reports/lodo")
 PRETRAINED_DIR = Path("reports/pretrained")
+CACHE_DIR = Path("build/cache")
 log = logging.getLogger("togglecf.main")
+
+
+def result_store() -> ResultStore:
+    """The classic filters' results shared by the steps (the study's baseline grids, the two-dataset
+    study's, Madgwick's TAGP of each left-out dataset): each (filter, parameters, trial file) is
+    computed once. Keyed on the package's source content (``code_digest``), so a code change starts
+    an empty store; an old store is simply not read again."""
+    return ResultStore(CACHE_DIR / f"classic-{code_digest()[:16]}.jsonl")
+
+
+#: step -> wall time [s] of this run (the time goal of `make run`)
+STEP_TIMES: dict = {}
+
+
+@contextmanager
+def step(name: str):
+    """Logs the wall time of a step of the job and keeps it in ``STEP_TIMES``."""
+    t0 = time.perf_counter()
+    yield
+    STEP_TIMES[name] = time.perf_counter() - t0
+    log.info(f"step {name}: {STEP_TIMES[name] / 60:.1f} min")
 
 
 def data_dir() -> Path:
@@ -79,35 +113,51 @@ def main(argv=None) -> int:
     p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-4 only)")
     p.add_argument("--lodo-only", action="store_true", help="steps 4 and 5 alone: leave one dataset out, pretrained")
     p.add_argument("--pretrained-only", action="store_true", help="step 5 alone (on an existing reports/lodo)")
+    p.add_argument("--backend", choices=BACKENDS, default="local",
+                   help="where the folds and left-out datasets run: local process pool (default) or dask")
+    p.add_argument("--scheduler", metavar="ADDR", help="Dask scheduler address (with --backend dask; its workers "
+                   "must read the data and write build/ and reports/: a shared filesystem)")
     args = p.parse_args(argv)
+    try:
+        backend = make_backend(args.backend, args.scheduler) if args.backend == "dask" else None  # None: local pools
+    except BackendError as exc:
+        p.error(str(exc))
     broad = data_dir()
     command = "python pipelines/main.py"
-    if args.pretrained_only:
+    t0 = time.perf_counter()
+    with backend or nullcontext(), result_store() as store:
+        if args.pretrained_only:
+            pretrained(broad)
+            return 0
+        if args.lodo_only:
+            leave_datasets_out(broad, command, store, backend)
+            pretrained(broad)
+            return 0
+        if not args.skip_study:
+            with step("study"):
+                run_study(load_study_config(), data_dir=broad, out_dir=STUDY_DIR, store=store, backend=backend)
+        elif not (STUDY_DIR / "results.json").is_file():
+            p.error(f"--skip-study: no study in {STUDY_DIR} (run without --skip-study first)")
+        with step("rate"):
+            rate(broad, command)
+        phone = phone_dir(broad)
+        if phone is None:
+            log.warning("phone data not found (set TOGGLECF_PHONE_DATA or put it beside BROAD as tyrex_nexus5): "
+                        "the sensor transfer and the two-dataset study are skipped")
+        else:
+            sensor_and_both(broad, phone, command, store, backend)
+        leave_datasets_out(broad, command, store, backend)
         pretrained(broad)
-        return 0
-    if args.lodo_only:
-        leave_datasets_out(broad, command)
-        pretrained(broad)
-        return 0
-    if not args.skip_study:
-        run_study(load_study_config(), data_dir=broad, out_dir=STUDY_DIR)
-    elif not (STUDY_DIR / "results.json").is_file():
-        p.error(f"--skip-study: no study in {STUDY_DIR} (run without --skip-study first)")
+    log.info("make run: " + ", ".join(f"{k} {v / 60:.1f}" for k, v in STEP_TIMES.items())
+             + f"; total {(time.perf_counter() - t0) / 60:.1f} min")
+    return 0
 
+
+def rate(broad: Path, command: str) -> None:
     log.info("rate: the held-out trials 3x decimated, each with the models of its fold")
     dec = write_decimated(DatasetIndex.from_dir(broad), Path("build/data/broad_decimated_3x"), 3)
     _write("rate", study_transfer(STUDY_DIR, DatasetIndex.from_dir(dec)), DatasetIndex.from_dir(dec),
            f"each fold's models of `{STUDY_DIR}` on its own test trials, every 3 samples averaged (95.2 Hz)", command)
-
-    phone = phone_dir(broad)
-    if phone is None:
-        log.warning("phone data not found (set TOGGLECF_PHONE_DATA or put it beside BROAD as tyrex_nexus5): "
-                    "the sensor transfer and the two-dataset study are skipped")
-    else:
-        sensor_and_both(broad, phone, command)
-    leave_datasets_out(broad, command)
-    pretrained(broad)
-    return 0
 
 
 def pretrained(broad: Path) -> None:
@@ -115,19 +165,21 @@ def pretrained(broad: Path) -> None:
     lodo = json.loads(lodo_file.read_text()) if lodo_file.is_file() else None
     if lodo is None:
         log.warning(f"{lodo_file} not found: the model card will have no leave-one-dataset-out check")
-    path = train_pretrained(dataset_dirs(broad), PRETRAINED_DIR, lodo)
+    with step("pretrained"):
+        path = train_pretrained(dataset_dirs(broad), PRETRAINED_DIR, lodo)
     print((PRETRAINED_DIR / "MODEL_CARD.md").read_text())
     log.info(f"pretrained learned VQF: {path}; `python pipelines/ship_pretrained.py` puts it in the package")
 
 
-def leave_datasets_out(broad: Path, command: str) -> None:
+def leave_datasets_out(broad: Path, command: str, store: ResultStore, backend=None) -> None:
     dirs = dataset_dirs(broad)
     if len(dirs) < 2:
         log.warning(f"no other dataset in BROAD's layout beside {broad}: leave one dataset out skipped")
         return
     cfg = load_config()
     cfg["gains"]["modes"] = ["9d", "vqf_9d"]
-    results = leave_one_dataset_out(dirs, Path("build/lodo"), cfg)
+    with step("leave one dataset out"):
+        results = leave_one_dataset_out(dirs, Path("build/lodo"), cfg, store=store, backend=backend)
     LODO_DIR.mkdir(parents=True, exist_ok=True)
     text = lodo_table(results, dirs, command)
     atomic_write_text(LODO_DIR / "lodo.md", text)
@@ -135,18 +187,20 @@ def leave_datasets_out(broad: Path, command: str) -> None:
     print(text)
 
 
-def sensor_and_both(broad: Path, phone: Path, command: str) -> None:
+def sensor_and_both(broad: Path, phone: Path, command: str, store: ResultStore, backend=None) -> None:
     log.info(f"sensor: models trained on all of BROAD, scored on every trial of {phone}")
     model_dir = Path("build/transfer/models_broad")
-    run_training(load_config(), data_dir=broad, out=model_dir, verbose=True)
-    phone_index = DatasetIndex.from_dir(phone)
-    _write("phone", models_transfer(model_dir, phone_index), phone_index,
-           f"models trained on all {len(DatasetIndex.from_dir(broad).available)} BROAD trials, on all "
-           f"{len(phone_index.available)} trials of `{phone.name}`", command)
+    with step("sensor"):
+        run_training(load_config(), data_dir=broad, out=model_dir, verbose=True)
+        phone_index = DatasetIndex.from_dir(phone)
+        _write("phone", models_transfer(model_dir, phone_index), phone_index,
+               f"models trained on all {len(DatasetIndex.from_dir(broad).available)} BROAD trials, on all "
+               f"{len(phone_index.available)} trials of `{phone.name}`", command)
 
     log.info("both datasets: the held-out study on BROAD + phone (folds by whole trial over both)")
     cfg = replace(load_study_config(), ablations=())
-    run_study(cfg, data_dir=[str(broad), str(phone)], out_dir=BOTH_DIR)
+    with step("two-dataset study"):
+        run_study(cfg, data_dir=[str(broad), str(phone)], out_dir=BOTH_DIR, store=store, backend=backend)
 
 
 if __name__ == "__main__":

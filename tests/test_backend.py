@@ -122,3 +122,52 @@ def test_unreachable_scheduler_is_one_clear_line(monkeypatch, synth, capsys):
     err = capsys.readouterr().err
     assert "cannot reach Dask scheduler at tcp://127.0.0.1:9" in err and "dask scheduler" in err
     assert "Traceback" not in err
+
+
+def test_store_serves_a_trial_under_another_index_by_its_name_there(synth, tmp_path):
+    """The store of `make run` is shared by a study on one directory and one on several: a trial file's
+    result comes back under the name and groups the second index gives it ("<dataset>/<trial>")."""
+    from togglecf.data.broad import open_index
+
+    names, params = list(synth.available), _grid()[:2]
+    path = tmp_path / "shared.jsonl"
+    with ResultStore(path) as store:
+        first = run_sweep(synth, names, "cf", params, backend=be.LocalBackend(1), store=store)
+    multi = open_index([str(synth.root), str(make_broad_dir(tmp_path / "other", ["04_d"], ["04_d"]))])
+    both = multi.select(None)
+    with ResultStore(path) as store:
+        second = run_sweep(multi, both, "cf", params, backend=be.LocalBackend(1), store=store)
+    assert second.reused == len(names) * len(params) and second.computed == len(params)  # only the new trial
+    prefix = synth.root.name
+    for i in range(len(params)):
+        for n in names:
+            r = second.results[i][f"{prefix}/{n}"]
+            assert r.trial == f"{prefix}/{n}" and r.groups == multi.trial_groups(f"{prefix}/{n}")
+            assert r.errors == first.results[i][n].errors
+
+
+def test_code_digest_follows_the_source(tmp_path):
+    from togglecf.run.sweep import code_digest
+
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "a.py").write_text("x = 1\n")
+    (tmp_path / "pkg" / "k.c").write_text("int x;\n")
+    d0 = code_digest(tmp_path)
+    (tmp_path / "pkg" / "notes.txt").write_text("not code")  # not a source file: same key
+    assert code_digest(tmp_path) == d0
+    (tmp_path / "pkg" / "k.c").write_text("int y;\n")
+    assert code_digest(tmp_path) != d0
+    assert len(code_digest()) == 64
+
+
+def test_local_backend_runs_in_process_inside_a_daemon(monkeypatch):
+    """A Dask worker is a daemonic process and may not start a pool: the tasks run in it, in order."""
+    import multiprocessing as mp
+
+    monkeypatch.setattr(mp.current_process(), "daemon", True, raising=False)
+    out = list(be.LocalBackend(2).run(_square, [(k, (k,)) for k in range(4)]))
+    assert [(o.key, o.value) for o in out] == [(k, k * k) for k in range(4)]
+
+
+def _square(x):
+    return x * x

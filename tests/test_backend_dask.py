@@ -9,7 +9,7 @@ import pytest
 
 distributed = pytest.importorskip("distributed", reason="dask.distributed not installed: pip install 'togglecf[dask]'")
 
-from togglecf.parallel.backend import DaskBackend  # noqa: E402
+from togglecf.parallel.backend import DaskBackend, LocalBackend  # noqa: E402
 from togglecf.cli.main import main  # noqa: E402
 from togglecf.core.io import to_jsonable  # noqa: E402
 from togglecf.run.scoring import grid_points  # noqa: E402
@@ -37,7 +37,7 @@ def cluster():
 @pytest.fixture(scope="module")
 def local_tune(broad_index):
     names = broad_index.select(TRIALS)
-    return names, grid_search(broad_index, names, "mahony", GRID, jobs=2)
+    return names, grid_search(broad_index, names, "mahony", GRID, backend=LocalBackend(2))
 
 
 def _wait_workers(client, n=2, timeout=60):

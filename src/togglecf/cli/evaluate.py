@@ -105,7 +105,7 @@ def cmd_evaluate(args):
                                             {n: index.available[n] for n in names}), "the pretrained learned VQF", names)
     with _sweep_context(args) as (backend, store, chunk):
         sweep = run_sweep(index, names, args.filter, [params], use_mag=not args.six_d, backend=backend, store=store,
-                          chunk_size=chunk, on_error="report", desc="evaluate")
+                          chunk_size=chunk, on_error="report")
     res = sweep.results[0]
     if not res:
         _print_failure_lines(sweep.failed, index)

@@ -109,7 +109,8 @@ class LocalBackend(Backend):
 
     def run(self, fn, tasks, desc=None, unit="task"):
         tasks = list(tasks)
-        if self.workers == 1 or len(tasks) <= 1:
+        # a daemonic process (a Dask worker) may not start a pool: its tasks run in it, in order
+        if self.workers == 1 or len(tasks) <= 1 or mp.current_process().daemon:
             yield from _inline(fn, tasks, desc, unit)
             return
         # fork: workers inherit the parent's compiled kernels and imported modules

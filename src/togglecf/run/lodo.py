@@ -19,14 +19,17 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.filters.toggling import TogglingFilter, TogglingSettings
 from togglecf.metrics.broad import trial_errors
+from togglecf.parallel.backend import LocalBackend
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
 from togglecf.run.config import load_config
@@ -39,7 +42,7 @@ from togglecf.toggling.gains import GainSearch
 from togglecf.toggling.load import load_compiled_models
 
 __all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_settings",
-           "toggling_core_results", "madgwick_tagp_results", "lodo_table", "lodo_json"]
+           "toggling_core_results", "madgwick_tagp", "lodo_table", "lodo_json"]
 
 log = logging.getLogger(__name__)
 
@@ -84,39 +87,60 @@ def toggling_core_results(model_dir, index: DatasetIndex, names) -> dict:
     return out
 
 
-def madgwick_tagp_results(train_dirs, index: DatasetIndex, names, jobs: int | None = None) -> tuple[dict, dict]:
-    """(trial -> ``TrialResult`` on the left-out ``index``, the β) of Madgwick at its TAGP over the study
-    config's grid (``[baselines.madgwick]``) on every trial of ``train_dirs``."""
+def madgwick_tagp(train_dirs, jobs: int | None = None, store=None) -> dict:
+    """Madgwick's TAGP (its parameters) over the study config's grid (``[baselines.madgwick]``) on
+    every trial of ``train_dirs``; ``store``: a ``run.sweep.ResultStore`` that keeps the grid's results."""
     grid = load_study_config().baselines["madgwick"]
     train = open_index([str(d) for d in train_dirs])
-    best = grid_search(train, train.select(None), "madgwick", grid, jobs=jobs).params
-    spec = FilterSpec("madgwick", params=best)
-    return {n: score_trial(index.load(n), spec)[0] for n in names}, best
+    return grid_search(train, train.select(None), "madgwick", grid, backend=LocalBackend(jobs), store=store).params
 
 
-def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs: int | None = None) -> dict:
+def _scored(index: DatasetIndex, names, spec: FilterSpec) -> dict:
+    return {n: score_trial(index.load(n), spec)[0] for n in names}
+
+
+def _left_out(left: Path, train: list, model_dir: Path, config, verbose: bool, madgwick: dict) -> dict:
+    """One left-out dataset (a task): train on ``train`` into ``model_dir``, score every trial of ``left``
+    (the rows of ``ROWS`` and ``CLASSIC``; Madgwick at its TAGP ``madgwick`` on the training datasets)."""
+    t0 = time.perf_counter()
+    log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
+    run_training(load_config(config), data_dir=[str(d) for d in train], out=model_dir, verbose=verbose)
+    index = DatasetIndex.from_dir(left)
+    names = index.select(None)
+    per = models_transfer(model_dir, index)
+    per[TOGGLING_CORE] = toggling_core_results(model_dir, index, names)
+    per[MADGWICK_TAGP] = _scored(index, names, FilterSpec("madgwick", params=madgwick))
+    log.info(f"  {left.name}: {len(names)} trials scored in {time.perf_counter() - t0:.0f} s (training included)")
+    return per
+
+
+def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs: int | None = None, backend=None,
+                          store=None) -> dict:
     """For each directory of ``dirs`` (at least two): train on all the others into
     ``out_dir/without_<name>/models`` and score every trial of the one left out. Returns
-    ``{dataset name: {filter: {trial: TrialResult}}}`` (the rows of ``ROWS`` and ``CLASSIC``)."""
+    ``{dataset name: {filter: {trial: TrialResult}}}`` (the rows of ``ROWS`` and ``CLASSIC``).
+
+    Madgwick's TAGP on each training set is found first, here (``store``: a ``ResultStore`` that
+    keeps the grid's results, so each trial's grid is computed once over all left-out datasets);
+    then the left-out datasets run as tasks on ``backend`` (default: a local process pool on
+    ``jobs`` cores; with Dask the data and ``out_dir`` must be on a filesystem the workers share)."""
     dirs = [Path(d) for d in dirs]
     if len(dirs) < 2:
         raise ValueError(f"leave one dataset out needs at least two datasets, got {[str(d) for d in dirs]}")
-    results = {}
+    tasks = []
     for left in dirs:
         train = [d for d in dirs if d != left]
-        model_dir = Path(out_dir) / f"without_{left.name}" / "models"
-        t0 = time.perf_counter()
-        log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
-        run_training(load_config(config), data_dir=[str(d) for d in train], out=model_dir, verbose=verbose)
-        index = DatasetIndex.from_dir(left)
-        names = index.select(None)
-        per = models_transfer(model_dir, index)
-        per[TOGGLING_CORE] = toggling_core_results(model_dir, index, names)
-        per[MADGWICK_TAGP], beta = madgwick_tagp_results(train, index, names, jobs)
+        beta = madgwick_tagp(train, jobs, store)
         log.info(f"  Madgwick's TAGP on {', '.join(d.name for d in train)}: {beta}")
-        results[left.name] = per
-        log.info(f"  {left.name}: {len(names)} trials scored in {time.perf_counter() - t0:.0f} s (training included)")
-    return results
+        model_dir = Path(out_dir) / f"without_{left.name}" / "models"
+        tasks.append((left.name, (left, train, model_dir, config, verbose, beta)))
+    results = {}
+    backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, len(tasks)))
+    for outcome in backend.run(_left_out, tasks, desc="leave one dataset out", unit="dataset"):
+        if outcome.error is not None:
+            raise outcome.error
+        results[outcome.key] = outcome.value
+    return {d.name: results[d.name] for d in dirs}
 
 
 def _mean(res: dict, names) -> float:
@@ -138,7 +162,8 @@ def lodo_table(results: dict, dirs, command: str, trained_on: str = "every other
     learned filters, their cores, Madgwick and VQF; for each learned filter the change against
     its core (relative mean, wins / ties / losses per trial, Wilcoxon p)."""
     by_name = {Path(d).name: Path(d) for d in dirs}
-    lines = [f"*Generated by `{command}` on {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC. "
+    lines = [f"*Generated by `{command}` on {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC at "
+             f"{source_revision()}. "
              "Do not edit: rerun the command.*", "",
              f"Each dataset is scored with models and gains trained on {trained_on} (never on it). Mean total "
              "RMSE [°] (BROAD's metric) over the trials of each group. *vs core*: the learned filter against its "

@@ -28,14 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from togglecf.core.config import config_path
+from togglecf.core.provenance import source_revision
 from togglecf.data.broad import open_index
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
-from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.labels import LabelSettings, make_targets
-from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, tagp, trial_errors
+from togglecf.parallel.backend import LocalBackend, data_location
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import write_report
 from togglecf.run.config import GAIN_KEYS, load_config
@@ -43,6 +43,7 @@ from togglecf.run.scoring import grid_points, parse_grid, run_filter, score_tria
 from togglecf.run.sweep import evaluate_trials
 from togglecf.run.train import run_training
 from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, load_gains
+from togglecf.toggling.load import load_compiled_models
 
 __all__ = ["StudyConfig", "load_study_config", "run_study"]
 
@@ -148,14 +149,14 @@ def _errors_series(q, t, six_d=False):
     return np.degrees(error_angles_rad(error_quaternion(q, t.opt_quat))["total"])
 
 
-def _baseline_grids(index, names, grids, use_mag, jobs):
-    """filter -> (list of params, list over params of trial -> TrialResult)."""
+def _baseline_grids(index, names, grids, use_mag, jobs, store=None):
+    """filter -> (list of params, list over params of trial -> TrialResult); ``store``: a
+    ``ResultStore`` that keeps them (``run_study``)."""
     out = {}
     for filt, grid in grids.items():
         keys = grid_points(grid)
         t0 = time.perf_counter()
-        res = evaluate_trials(index, names, filt, keys, use_mag=use_mag, jobs=jobs,
-                              desc=f"{filt} grid ({'9D' if use_mag else '6D'})")
+        res = evaluate_trials(index, names, filt, keys, use_mag=use_mag, jobs=jobs, store=store)
         log.info(f"  {filt} {'9D' if use_mag else '6D'}: {len(keys)} grid points x {len(names)} trials "
              f"in {time.perf_counter() - t0:.1f} s")
         out[filt] = (keys, res)
@@ -181,8 +182,73 @@ def _vqf(trial, use_mag=True):
     return out["quat9D" if use_mag else "quat6D"], us
 
 
-def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports/study", trials=None) -> dict:
-    """Run the whole study and write its report; returns the result tables (see ``report``)."""
+def _row(trial: str, label: str, fold: int, errors: dict, us_per_sample=None, params=None) -> dict:
+    """One row of the study's tables (``per_trial.csv``): trial, filter label, fold (-1: no training),
+    µs per sample when measured, the parameters of a tuned baseline, BROAD's errors [deg]."""
+    row = {"trial": trial, "filter": label, "fold": fold}
+    if us_per_sample is not None:
+        row["us_per_sample"] = us_per_sample
+    if params is not None:
+        row["params"] = json.dumps(params)
+    return row | errors
+
+
+@dataclass(frozen=True)
+class LearnedRow:
+    """A learned filter scored on each fold's test trials with the fold's models in the loop:
+    ``label`` in the tables, the registry filter, 9D/6D, whether its error series is plotted, and
+    the ablation that must be on for the row to run (``None``: always)."""
+
+    label: str
+    filter: str
+    use_mag: bool = True
+    plotted: bool = False
+    needs: str | None = None
+
+
+#: the learned rows of every fold, in table order (the toggling CF's timeline is plotted too)
+LEARNED_ROWS = (LearnedRow("toggling", TOGGLING, plotted=True), LearnedRow("vqf_toggling", VQF_TOGGLING, plotted=True),
+                LearnedRow("vqf_toggling_6d", VQF_TOGGLING, use_mag=False, needs="6d"))
+#: baselines whose error series the plots show
+PLOTTED_BASELINES = ("madgwick", "cf")
+
+
+@dataclass(frozen=True)
+class _FoldJob:
+    """What a fold task needs (picklable: paths and settings, no arrays)."""
+
+    cfg: StudyConfig
+    train_cfg: dict
+    root: object  # ``data_location`` of the index
+    names: tuple
+    out: Path
+    jobs: int
+
+
+#: trials loaded by this process before its pool forked: (root, name) -> Trial (inherited by the workers)
+_LOADED: dict = {}
+
+
+def _trials(root, names) -> dict:
+    """name -> Trial, from this process's ``_LOADED`` when there, else loaded from ``root`` here (a
+    Dask worker)."""
+    key = str(root)
+    missing = [n for n in names if (key, n) not in _LOADED]
+    if missing:
+        index = open_index(list(root) if isinstance(root, tuple) else root)
+        for n in missing:
+            _LOADED[(key, n)] = index.load(n)
+    return {n: _LOADED[(key, n)] for n in names}
+
+
+def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports/study", trials=None, backend=None,
+              store=None) -> dict:
+    """Run the whole study and write its report; returns the result tables (see ``report``).
+
+    ``backend`` (``togglecf.parallel``) runs the folds as tasks (default: a local process pool on
+    ``jobs`` cores; with Dask the data and ``out_dir`` must be on a filesystem the workers share);
+    ``store`` (a ``run.sweep.ResultStore``) keeps the baseline grids' results, so that a later study
+    on the same trials computes none of them again."""
     cfg = config or load_study_config()
     jobs = cfg.jobs or os.cpu_count() or 1
     out = Path(out_dir)
@@ -191,189 +257,271 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     names = index.select(trials)
     log.info(index.summary())
     folds = trial_folds(names, cfg.folds, cfg.fold_seed)
-    loaded = {n: index.load(n) for n in names}
+    job = _FoldJob(cfg, _fold_train_config(cfg), data_location(index), tuple(names), out, jobs)
+    loaded = _trials(job.root, names)
     timing = {}
 
     log.info("baselines: evaluating grids on all trials (each fold picks its TAGP on its training trials)")
     t0 = time.perf_counter()
-    grids9 = _baseline_grids(index, names, cfg.baselines, True, jobs)
-    grids6 = _baseline_grids(index, names, cfg.baselines_6d, False, jobs) if "6d" in cfg.ablations else {}
+    grids9 = _baseline_grids(index, names, cfg.baselines, True, jobs, store)
+    grids6 = _baseline_grids(index, names, cfg.baselines_6d, False, jobs, store) if "6d" in cfg.ablations else {}
+    grids9r = {}
+    if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
+        grids9r["madgwick_rest_bias"] = _rest_bias_grid(cfg.baselines["madgwick"], loaded, names)
     timing["baseline_grids_s"] = time.perf_counter() - t0
 
-    rest_bias_grid = {}
-    if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
-        keys = grid_points(cfg.baselines["madgwick"])
-        corrected = {n: without_initial_rest_bias(loaded[n]) for n in names}
-        rest_bias_grid = {"keys": keys, "res": [{n: score_trial(corrected[n], FilterSpec("madgwick", p))[0]
-                                                 for n in names} for p in keys]}
-        log.info(f"  madgwick with the initial-rest gyro bias removed: {len(keys)} grid points x {len(names)} trials")
-
-    rows = []  # one per (trial, filter): metrics + fold + params
+    t0 = time.perf_counter()
+    done = _run_folds(job, folds, backend or LocalBackend(min(jobs, len(folds))))
+    timing["folds_s"] = time.perf_counter() - t0
+    rows, fold_info = [], []
     series = {n: {} for n in names}  # per-sample total error [deg] for the plots
     timelines = {}
-    fold_info = []
-    train_cfg = load_config(cfg.train_config)
-    six_d = "6d" in cfg.ablations
-    train_cfg["gains"].update(learn=True, modes=(["9d", "6d", "vqf_9d", "vqf_6d"] if six_d else ["9d", "vqf_9d"]))
-    train_cfg["run"]["cv_folds"] = cfg.inner_folds
     for k, test in enumerate(folds):
-        train = [n for n in names if n not in test]
-        log.info(f"fold {k + 1}/{len(folds)}: train on {len(train)} trials, test on {', '.join(test)}")
-        info = {"fold": k, "train": train, "test": test}
-        t0 = time.perf_counter()
-        model_dir = out / "folds" / f"fold{k}" / "models"
-        res = run_training(train_cfg, data_dir=index.root, trials=",".join(train), out=model_dir, cv=True,
-                           verbose=False)  # inner CV, models, then the gains on the CV's out-of-fold predictions
-        models = CompiledModels.from_bundle(load_bundle(model_dir))
-        gains9 = load_gains(model_dir, use_mag=True)
-        info["train_s"] = res["timing"]["final_fit_s"] + res["timing"]["dataset_s"] + res["timing"].get("cv_s", 0.0)
-        info["gains_s"] = res["timing"].get("gains_s", 0.0)
-        hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
-        info["gains"] = {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
-                         "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
-                         "noise_weight_acc": gains9.noise_weight_acc, "noise_weight_mag": gains9.noise_weight_mag,
-                         "confidence_floor": gains9.confidence_floor, "train_objective": hist[-1][2]}
-        log.info(f"  models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}")
-        # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
-        preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
-        preds.update(res["oof_predictions"])
-        spec = FilterSpec(TOGGLING, models=model_dir)  # the headline filter: models compiled into the loop
-        for r, o in score_trials([loaded[n] for n in test], spec):
-            n, t = r.trial, loaded[r.trial]
-            rows.append({"trial": n, "filter": "toggling", "fold": k, "us_per_sample": r.us_per_sample, **r.errors})
-            series[n]["toggling"] = _errors_series(o.quat, t)
-            timelines[n] = {"alpha_acc": o.diagnostics["alpha_acc"],
-                            "p": np.column_stack([o.diagnostics[f"p_{s}"] for s in models.class_names]),
-                            "states": models.class_names}
-        gains_vqf = load_gains(model_dir, kind=VQF_TOGGLING)  # the VQF core with learned time constants
-        info["vqf_gains"] = describe_gains(gains_vqf)
-        log.info(f"  learned VQF time constants: {info['vqf_gains']}")
-        for r, o in score_trials([loaded[n] for n in test], FilterSpec(VQF_TOGGLING, models=model_dir)):
-            rows.append({"trial": r.trial, "filter": "vqf_toggling", "fold": k, "us_per_sample": r.us_per_sample,
-                         **r.errors})
-            series[r.trial]["vqf_toggling"] = _errors_series(o.quat, loaded[r.trial])
-        if six_d:  # the same learned filter in 6D: its own gains (vqf_6d), heading offset removed in the errors
-            for r, _ in score_trials([loaded[n] for n in test], FilterSpec(VQF_TOGGLING, models=model_dir,
-                                                                           use_mag=False)):
-                rows.append({"trial": r.trial, "filter": "vqf_toggling_6d", "fold": k, "us_per_sample": r.us_per_sample,
-                             **r.errors})
-        _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, info, train_cfg, index, out)
-        for filt, (keys, res) in grids9.items():
-            i, params, train_err = _tagp_on(train, keys, res)
-            info.setdefault("baseline_tagp", {})[filt] = {"params": params, "train_mean_total": train_err}
-            for n in test:
-                r = res[i][n]
-                rows.append({"trial": n, "filter": filt, "fold": k, "us_per_sample": r.us_per_sample,
-                             "params": json.dumps(params), **r.errors})
-                if filt in ("madgwick", "cf"):
-                    q, _ = run_filter(loaded[n], FilterSpec(filt, params))
-                    series[n][filt] = _errors_series(q.quat, loaded[n])
-        if rest_bias_grid:  # BROAD issue 2's bracket: Madgwick at its fold TAGP on rest-bias-corrected gyro
-            i, params, _ = _tagp_on(train, rest_bias_grid["keys"], rest_bias_grid["res"])
-            for n in test:
-                r = rest_bias_grid["res"][i][n]
-                rows.append({"trial": n, "filter": "madgwick_rest_bias", "fold": k, "us_per_sample": r.us_per_sample,
-                             "params": json.dumps(params), **r.errors})
-        for filt, (keys, res) in grids6.items():
-            i, params, _ = _tagp_on(train, keys, res)
-            for n in test:
-                rows.append({"trial": n, "filter": f"{filt}_6d", "fold": k, "us_per_sample": res[i][n].us_per_sample,
-                             "params": json.dumps(params), **res[i][n].errors})
+        fold = done[k]
+        info, train = fold["info"], fold["info"]["train"]
+        rows += fold["rows"] + _baseline_rows(grids9, train, test, k, info)
+        for n in test:
+            series[n].update(fold["series"][n])
+            series[n].update({f: _errors_series(run_filter(loaded[n], FilterSpec(f, p))[0].quat, loaded[n])
+                              for f, p in _chosen(info, PLOTTED_BASELINES)})
+        timelines.update(fold["timelines"])
+        rows += _baseline_rows(grids9r, train, test, k, {}) + _baseline_rows(grids6, train, test, k, {}, "_6d")
         fold_info.append(info)
-
-    for n in names:  # the VQF core (ours, from the paper) at VQF's defaults: the learned filter without learning
-        for use_mag in (True, False) if six_d else (True,):
-            r, o = score_trial(loaded[n], FilterSpec("vqf_core", use_mag=use_mag))
-            rows.append({"trial": n, "filter": "vqf_core_defaults" + ("" if use_mag else "_6d"), "fold": -1,
-                         "us_per_sample": r.us_per_sample, **r.errors})
-
-    try:  # VQF: the external state of the art, at its defaults
-        for n in names:
-            t = loaded[n]
-            for use_mag in (True, False) if six_d else (True,):
-                q, us = _vqf(t, use_mag)
-                rows.append({"trial": n, "filter": "vqf" if use_mag else "vqf_6d", "fold": -1, "us_per_sample": us,
-                             **trial_errors(q, t.opt_quat, t.movement, six_d=not use_mag)})
-                if use_mag:
-                    series[n]["vqf"] = _errors_series(q, t)
-    except ImportError:
-        log.info("vqf is not installed (pip install -e '.[dev]'): VQF is left out of the comparison")
+    rows += _default_rows(loaded, names, "6d" in cfg.ablations, series)
 
     timing["total_s"] = time.perf_counter() - t_start
     result = {"rows": rows, "folds": fold_info, "timing": timing, "trials": names, "missing": index.missing,
-              "fold_seed": cfg.fold_seed,
-              "groups": index.groups}
+              "fold_seed": cfg.fold_seed, "groups": index.groups, "code": source_revision()}
     write_report(out, result, series, timelines, loaded)
     log.info(f"study done in {timing['total_s']:.0f} s; report in {out}/")
     return result
 
 
-def _ablations(cfg, k, train, test, loaded, preds, models, gains9, rows, jobs, info, train_cfg, index, out):
-    """The ablation variants of fold ``k`` (module docstring)."""
-    ns = len(models.class_names)
-    variants = {}
-    if "toggling_only" in cfg.ablations:  # predicted states, no noise removal
-        def no_noise(p):
-            p = p.copy()
-            p[:, ns:] = np.where(np.isnan(p[:, ns:]), np.nan, 0.0)
-            return p
-        variants["toggling_only"] = (no_noise, True, cfg.gains)
-    if "noise_only" in cfg.ablations:  # noise removal with one fixed gain pair, no state, no rest bias
-        def one_state(p):
-            p = p.copy()
-            p[:, :ns] = 0.0
-            p[:, 0] = 1.0
-            return p
-        variants["noise_only"] = (one_state, True, replace(cfg.gains, bias_tau=(-1.0,)))
-    for name, (transform, use_mag, search) in variants.items():
-        start = None
-        if name == "noise_only":
-            start = replace(gains9, bias_tau=-1.0)
-        s, hist = learn_gains([loaded[n] for n in train], [transform(preds[n]) for n in train], models.class_names,
-                              models.static_state, use_mag=use_mag, search=search, start=start, jobs=jobs)
-        if name == "noise_only":  # one gain for all states: the learner only moves state 0's, copy it
-            s = replace(s, tau_acc=(s.tau_acc[0],) * ns, tau_mag=(s.tau_mag[0],) * ns)
-        info.setdefault("ablation_gains", {})[name] = {"tau_acc": s.tau_acc, "tau_mag": s.tau_mag}
-        for n in test:
+def _fold_train_config(cfg: StudyConfig) -> dict:
+    """The ``togglecf train`` config of every fold: the gains of every mode the rows need, learned
+    on the inner CV's out-of-fold predictions."""
+    train_cfg = load_config(cfg.train_config)
+    six_d = "6d" in cfg.ablations
+    train_cfg["gains"].update(learn=True, modes=(["9d", "6d", "vqf_9d", "vqf_6d"] if six_d else ["9d", "vqf_9d"]))
+    train_cfg["run"]["cv_folds"] = cfg.inner_folds
+    return train_cfg
+
+
+def _run_folds(job: _FoldJob, folds, backend) -> dict:
+    """fold index -> ``_run_fold``'s result, the folds run as tasks on ``backend``; a failed fold raises."""
+    tasks = [(k, (job, k, test)) for k, test in enumerate(folds)]
+    done = {}
+    for outcome in backend.run(_run_fold, tasks, desc="study folds", unit="fold"):
+        if outcome.error is not None:
+            raise outcome.error
+        done[outcome.key] = outcome.value
+    return done
+
+
+def _run_fold(job: _FoldJob, k: int, test: list) -> dict:
+    """Fold ``k`` (a task): train on every other trial, learn the gains, score the learned rows and
+    the ablations on ``test``. Returns its rows, error series, timelines and ``info``."""
+    loaded = _trials(job.root, job.names)
+    train = [n for n in job.names if n not in test]
+    log.info(f"fold {k + 1}: train on {len(train)} trials, test on {', '.join(test)}")
+    model_dir = job.out / "folds" / f"fold{k}" / "models"
+    res = run_training(job.train_cfg, data_dir=job.root, trials=",".join(train), out=model_dir, cv=True,
+                       verbose=False)  # inner CV, models, then the gains on the CV's out-of-fold predictions
+    models = load_compiled_models(model_dir)
+    gains9 = load_gains(model_dir, use_mag=True)
+    info = {"fold": k, "train": train, "test": test, **_fold_gains_info(res, model_dir, gains9)}
+    log.info(f"  fold {k + 1}: models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}; "
+             f"learned VQF: {info['vqf_gains']}")
+    out = {"rows": [], "series": {n: {} for n in test}, "timelines": {}, "info": info}
+    for spec in LEARNED_ROWS:
+        if spec.needs is None or spec.needs in job.cfg.ablations:
+            _score_learned(spec, [loaded[n] for n in test], model_dir, k, models.class_names, out)
+    # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
+    preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
+    preds.update(res["oof_predictions"])
+    t0 = time.perf_counter()
+    out["rows"] += _ablations(job, _Fold(k, train, test, loaded, preds, models, gains9, info))
+    info["ablations_s"] = time.perf_counter() - t0
+    return out
+
+
+def _fold_gains_info(res: dict, model_dir: Path, gains9) -> dict:
+    """Timing and learned settings of a fold's training (``info`` of the fold in ``results.json``)."""
+    hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
+    t = res["timing"]
+    return {"train_s": t["final_fit_s"] + t["dataset_s"] + t.get("cv_s", 0.0), "gains_s": t.get("gains_s", 0.0),
+            "gains": {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
+                      "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
+                      "noise_weight_acc": gains9.noise_weight_acc, "noise_weight_mag": gains9.noise_weight_mag,
+                      "confidence_floor": gains9.confidence_floor, "train_objective": hist[-1][2]},
+            "vqf_gains": describe_gains(load_gains(model_dir, kind=VQF_TOGGLING))}
+
+
+def _score_learned(spec: LearnedRow, trials, model_dir, k: int, class_names, out: dict) -> None:
+    """The rows of ``spec`` on a fold's test ``trials`` (models compiled into the loop), into ``out``."""
+    by_name = {t.name: t for t in trials}
+    for r, o in score_trials(trials, FilterSpec(spec.filter, models=model_dir, use_mag=spec.use_mag)):
+        out["rows"].append(_row(r.trial, spec.label, k, r.errors, r.us_per_sample))
+        if not spec.plotted:
+            continue
+        out["series"][r.trial][spec.label] = _errors_series(o.quat, by_name[r.trial])
+        if spec.filter == TOGGLING:
+            out["timelines"][r.trial] = {"alpha_acc": o.diagnostics["alpha_acc"],
+                                         "p": np.column_stack([o.diagnostics[f"p_{s}"] for s in class_names]),
+                                         "states": class_names}
+
+
+def _baseline_rows(grids: dict, train, test, k: int, info: dict, suffix: str = "") -> list:
+    """Each grid's TAGP on the fold's training trials, scored on its test trials (rows ``filter + suffix``);
+    the chosen parameters go into ``info["baseline_tagp"]`` (9D only)."""
+    rows = []
+    for filt, (keys, res) in grids.items():
+        i, params, train_err = _tagp_on(train, keys, res)
+        if not suffix:
+            info.setdefault("baseline_tagp", {})[filt] = {"params": params, "train_mean_total": train_err}
+        rows += [_row(n, filt + suffix, k, res[i][n].errors, res[i][n].us_per_sample, params) for n in test]
+    return rows
+
+
+def _chosen(info: dict, filters) -> list:
+    """(filter, parameters) of the fold's TAGP of each of ``filters`` that has a grid."""
+    return [(f, info["baseline_tagp"][f]["params"]) for f in filters if f in info.get("baseline_tagp", {})]
+
+
+def _rest_bias_grid(grid: dict, loaded: dict, names) -> tuple:
+    """BROAD issue 2's bracket: Madgwick's grid on the trials with their initial-rest gyro bias removed,
+    as ``(params list, [trial -> TrialResult] per point)``."""
+    keys = grid_points(grid)
+    corrected = {n: without_initial_rest_bias(loaded[n]) for n in names}
+    res = [{n: score_trial(corrected[n], FilterSpec("madgwick", p))[0] for n in names} for p in keys]
+    log.info(f"  madgwick with the initial-rest gyro bias removed: {len(keys)} grid points x {len(names)} trials")
+    return keys, res
+
+
+def _default_rows(loaded: dict, names, six_d: bool, series: dict) -> list:
+    """The filters at their defaults, on every trial (fold -1): the VQF core (ours, from the paper), the
+    learned filter without learning, and VQF (the external state of the art) when installed."""
+    rows = []
+    for n in names:
+        for use_mag in (True, False) if six_d else (True,):
+            r, _ = score_trial(loaded[n], FilterSpec("vqf_core", use_mag=use_mag))
+            rows.append(_row(n, "vqf_core_defaults" + ("" if use_mag else "_6d"), -1, r.errors, r.us_per_sample))
+    try:
+        for n in names:
             t = loaded[n]
-            o = TogglingFilter(t.fs, s, use_mag=use_mag).update_batch(t.gyr, t.acc, t.mag if use_mag else None,
-                                                                     predictions=transform(preds[n]))
-            rows.append({"trial": n, "filter": name, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement,
-                                                                               six_d=not use_mag)})
-    no_noise_search = replace(cfg.vqf_gains, noise_weight_acc=(0.0,), noise_weight_mag=(0.0,))
-    vqf_variants = {}
+            for use_mag in (True, False) if six_d else (True,):
+                q, us = _vqf(t, use_mag)
+                rows.append(_row(n, "vqf" if use_mag else "vqf_6d", -1,
+                                 trial_errors(q, t.opt_quat, t.movement, six_d=not use_mag), us))
+                if use_mag:
+                    series[n]["vqf"] = _errors_series(q, t)
+    except ImportError:
+        log.info("vqf is not installed (pip install -e '.[dev]'): VQF is left out of the comparison")
+    return rows
+
+
+@dataclass
+class _Fold:
+    """One fold's trials, predictions and models, for its ablations."""
+
+    k: int
+    train: list
+    test: list
+    loaded: dict
+    preds: dict  # name -> (N, S + 6): the final models' on test trials, out-of-fold on training trials
+    models: object  # CompiledModels
+    gains9: object  # the fold's learned 9D toggling settings
+    info: dict
+
+
+def _no_noise(ns):
+    def transform(p):  # predicted states, no noise removal
+        p = p.copy()
+        p[:, ns:] = np.where(np.isnan(p[:, ns:]), np.nan, 0.0)
+        return p
+    return transform
+
+
+def _one_state(ns):
+    def transform(p):  # noise removal with one fixed gain pair, no state, no rest bias
+        p = p.copy()
+        p[:, :ns] = 0.0
+        p[:, 0] = 1.0
+        return p
+    return transform
+
+
+def _ablations(job: _FoldJob, fold: _Fold) -> list:
+    """The ablation rows of a fold (module docstring), in table order."""
+    cfg, rows = job.cfg, []
+    ns = len(fold.models.class_names)
+    if "toggling_only" in cfg.ablations:
+        rows += _toggling_variant(job, fold, "toggling_only", _no_noise(ns), cfg.gains, None)
+    if "noise_only" in cfg.ablations:
+        rows += _toggling_variant(job, fold, "noise_only", _one_state(ns), replace(cfg.gains, bias_tau=(-1.0,)),
+                                  replace(fold.gains9, bias_tau=-1.0))
     if "vqf_taus_only" in cfg.ablations:  # the learned time constants without the noise removal
-        vqf_variants["vqf_taus_only"] = preds
+        rows += _vqf_variant(job, fold, "vqf_taus_only", fold.preds)
     if "vqf_oracle" in cfg.ablations:  # the true motion state as the prediction: the ceiling of a better classifier
-        label_settings = LabelSettings.from_dict({**train_cfg["labels"], "seed": train_cfg["run"]["seed"]})
-        vqf_variants["vqf_oracle"] = {n: oracle_predictions(loaded[n], label_settings, models.class_names)
-                                      for n in train + test}
-    for name, pr in vqf_variants.items():
-        s, _ = learn_gains([loaded[n] for n in train], [pr[n] for n in train], models.class_names, models.static_state,
-                           search=no_noise_search, jobs=jobs)
-        info.setdefault("ablation_gains", {})[name] = describe_gains(s)
-        for n in test:
-            t = loaded[n]
-            o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pr[n])
-            rows.append({"trial": n, "filter": name, "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement)})
+        label_settings = LabelSettings.from_dict({**job.train_cfg["labels"], "seed": job.train_cfg["run"]["seed"]})
+        oracle = {n: oracle_predictions(fold.loaded[n], label_settings, fold.models.class_names)
+                  for n in fold.train + fold.test}
+        rows += _vqf_variant(job, fold, "vqf_oracle", oracle)
     if "6d" in cfg.ablations:  # gains learned in 6D by `togglecf train`
-        s6 = load_gains(out / "folds" / f"fold{k}" / "models", use_mag=False)
-        for n in test:
-            t = loaded[n]
-            o = TogglingFilter(t.fs, s6, use_mag=False).update_batch(t.gyr, t.acc, None, predictions=preds[n])
-            rows.append({"trial": n, "filter": "toggling_6d", "fold": k,
-                         **trial_errors(o.quat, t.opt_quat, t.movement, six_d=True)})
+        s6 = load_gains(job.out / "folds" / f"fold{fold.k}" / "models", use_mag=False)
+        rows += _toggling_rows(fold, "toggling_6d", s6, fold.preds, use_mag=False)
     if "ransac_off" in cfg.ablations:
-        cfg_off = {s: dict(v) for s, v in train_cfg.items()}
-        cfg_off["labels"]["ransac"] = False
-        cfg_off["gains"]["modes"] = ["9d"]
-        cfg_off["run"]["cv_folds"] = cfg.inner_folds
-        model_dir = out / "folds" / f"fold{k}" / "models_ransac_off"
-        run_training(cfg_off, data_dir=index.root, trials=",".join(train), out=model_dir, cv=True, verbose=False)
-        m_off = CompiledModels.from_bundle(load_bundle(model_dir))
-        s = load_gains(model_dir)
-        p_off = {n: m_off.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
-        for n in test:
-            t = loaded[n]
-            o = TogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=p_off[n])
-            rows.append({"trial": n, "filter": "ransac_off", "fold": k, **trial_errors(o.quat, t.opt_quat, t.movement)})
+        rows += _ransac_off(job, fold)
+    return rows
+
+
+def _toggling_rows(fold: _Fold, label: str, settings, preds: dict, use_mag: bool = True) -> list:
+    """``TogglingFilter`` with ``settings`` fed ``preds`` on the fold's test trials."""
+    rows = []
+    for n in fold.test:
+        t = fold.loaded[n]
+        o = TogglingFilter(t.fs, settings, use_mag=use_mag).update_batch(t.gyr, t.acc, t.mag if use_mag else None,
+                                                                        predictions=preds[n])
+        rows.append(_row(n, label, fold.k, trial_errors(o.quat, t.opt_quat, t.movement, six_d=not use_mag)))
+    return rows
+
+
+def _toggling_variant(job: _FoldJob, fold: _Fold, label: str, transform, search, start) -> list:
+    """The toggling CF's gains learned again on transformed predictions, scored on the test trials."""
+    preds = {n: transform(fold.preds[n]) for n in fold.train + fold.test}
+    s, _ = learn_gains([fold.loaded[n] for n in fold.train], [preds[n] for n in fold.train], fold.models.class_names,
+                       fold.models.static_state, use_mag=True, search=search, start=start, jobs=job.jobs)
+    if label == "noise_only":  # one gain for all states: the learner only moves state 0's, copy it
+        ns = len(fold.models.class_names)
+        s = replace(s, tau_acc=(s.tau_acc[0],) * ns, tau_mag=(s.tau_mag[0],) * ns)
+    fold.info.setdefault("ablation_gains", {})[label] = {"tau_acc": s.tau_acc, "tau_mag": s.tau_mag}
+    return _toggling_rows(fold, label, s, preds)
+
+
+def _vqf_variant(job: _FoldJob, fold: _Fold, label: str, preds: dict) -> list:
+    """The learned VQF's time constants learned on ``preds`` without the noise removal, scored on the
+    test trials with the same kind of predictions."""
+    search = replace(job.cfg.vqf_gains, noise_weight_acc=(0.0,), noise_weight_mag=(0.0,))
+    s, _ = learn_gains([fold.loaded[n] for n in fold.train], [preds[n] for n in fold.train], fold.models.class_names,
+                       fold.models.static_state, search=search, jobs=job.jobs)
+    fold.info.setdefault("ablation_gains", {})[label] = describe_gains(s)
+    rows = []
+    for n in fold.test:
+        t = fold.loaded[n]
+        o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=preds[n])
+        rows.append(_row(n, label, fold.k, trial_errors(o.quat, t.opt_quat, t.movement)))
+    return rows
+
+
+def _ransac_off(job: _FoldJob, fold: _Fold) -> list:
+    """Models and 9D gains retrained without RANSAC cleaning, scored on the test trials."""
+    cfg_off = {s: dict(v) for s, v in job.train_cfg.items()}
+    cfg_off["labels"]["ransac"] = False
+    cfg_off["gains"]["modes"] = ["9d"]
+    cfg_off["run"]["cv_folds"] = job.cfg.inner_folds
+    model_dir = job.out / "folds" / f"fold{fold.k}" / "models_ransac_off"
+    run_training(cfg_off, data_dir=job.root, trials=",".join(fold.train), out=model_dir, cv=True, verbose=False)
+    m_off = load_compiled_models(model_dir)
+    t = fold.loaded
+    p_off = {n: m_off.predict_samples(t[n].gyr, t[n].acc, t[n].mag, t[n].fs) for n in fold.test}
+    return _toggling_rows(fold, "ransac_off", load_gains(model_dir), p_off)

@@ -35,11 +35,27 @@ from togglecf.parallel.backend import Backend, LocalBackend, data_location, load
 from togglecf.registry import filter_spec
 from togglecf.run.scoring import TrialResult, grid_points, score_trial, warm_up
 
-__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path",
+__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path", "code_digest",
            "format_failures"]
 
 SWEEP_VERSION = f"togglecf-{__version__}/sweep-1"
 JOURNAL = "sweep.jsonl"
+
+
+#: the package's files whose content ``code_digest`` covers
+_CODE_SUFFIXES = (".py", ".c", ".h", ".json", ".toml")
+
+
+def code_digest(root=None) -> str:
+    """sha256 (hex) of the content of every source file of the package (``root``: another tree),
+    walked in sorted order: the key of a cache that code changes must invalidate (a results store
+    shared by the steps of ``make run``), where ``SWEEP_VERSION`` alone would outlive an edit."""
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for f in sorted(p for p in root.rglob("*") if p.suffix in _CODE_SUFFIXES and p.is_file()):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
 
 
 def journal_path(out_dir) -> Path:
@@ -150,7 +166,7 @@ def _chunks(n_points, n_trials, workers, chunk_size):
 
 def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Backend | None = None,
               store: ResultStore | None = None, chunk_size: int | None = None, on_error="report",
-              on_result=None, desc="evaluate") -> SweepResult:
+              on_result=None) -> SweepResult:
     """Evaluate every dict of ``params_list`` on every trial of ``names`` (see the module doc).
 
     ``chunk_size``: parameter dicts per task (``None``: all, one task per trial; ``0``: automatic).
@@ -169,7 +185,8 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
         for nk, k in keys.items():
             if k in store.done:
                 rec = store.done[k]
-                got[nk] = TrialResult(rec["trial"], tuple(rec["groups"]), rec["errors"], rec["us_per_sample"],
+                # the trial's name and groups in this index (a file keeps its key under "<dataset>/" names)
+                got[nk] = TrialResult(nk[0], index.trial_groups(nk[0]), rec["errors"], rec["us_per_sample"],
                                       rec["n_samples"], dict(params_list[nk[1]]), rec.get("diagnostics", {}))
                 if rec.get("invalid") is not None:
                     invalid[nk[0]] = rec["invalid"]
@@ -183,6 +200,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
     if tasks and isinstance(backend, LocalBackend):
         warm_up(specs[0])  # compiled before the fork
     failed, computed = {}, 0
+    desc = f"{filter_name} ({'9D' if use_mag else '6D'}, {len(params_list)} point{'s' if len(params_list) != 1 else ''})"
     for done, out in enumerate(backend.run(_sweep_task, tasks, desc=desc, unit="task"), 1):
         name, idx = out.key
         if out.error is not None or "load_error" in out.value:
@@ -214,7 +232,7 @@ def run_sweep(index, names, filter_name, params_list, use_mag=True, backend: Bac
     return SweepResult(results, failed, missing, computed, reused, invalid)
 
 
-def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=None, desc="evaluate",
+def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=None,
                     backend=None, store=None, chunk_size=None):
     """Evaluate every parameter dict in ``params_list`` on every named trial of ``index``.
 
@@ -226,20 +244,20 @@ def evaluate_trials(index, names, filter_name, params_list, use_mag=True, jobs=N
     """
     backend = backend or LocalBackend(jobs)
     return run_sweep(index, names, filter_name, params_list, use_mag, backend=backend, store=store,
-                     chunk_size=chunk_size, on_error="raise", desc=desc).results
+                     chunk_size=chunk_size, on_error="raise").results
 
 
-def grid_search(index, names, filter_name, grid, use_mag=True, jobs=None, backend=None, store=None,
+def grid_search(index, names, filter_name, grid, use_mag=True, backend=None, store=None,
                 chunk_size=None, on_error="raise", on_result=None) -> TagpResult:
-    """Evaluate the full grid on the trials and return BROAD's TAGP (see ``metrics.tagp``).
+    """Evaluate the full grid on the trials and return BROAD's TAGP (see ``metrics.tagp``);
+    ``backend`` default: a local process pool on all cores.
 
     With ``on_error="report"`` a failed trial is left out of the TAGP (which needs the same trials
     at every grid point) and listed in the result's ``failed`` attribute (trial -> error)."""
     params_list = grid_points(grid)
     keys = [tuple(p.values()) for p in params_list]
-    sweep = run_sweep(index, names, filter_name, params_list, use_mag, backend=backend or LocalBackend(jobs),
-                      store=store, chunk_size=chunk_size, on_error=on_error, on_result=on_result,
-                      desc=f"tune {filter_name}")
+    sweep = run_sweep(index, names, filter_name, params_list, use_mag, backend=backend or LocalBackend(),
+                      store=store, chunk_size=chunk_size, on_error=on_error, on_result=on_result)
     complete = [n for n in names if all(n in res for res in sweep.results)]
     if not complete:
         lines = format_failures(sweep.failed, index.available)

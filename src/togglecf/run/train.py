@@ -80,6 +80,28 @@ class _train_backend:
             self.backend.close()
 
 
+def _training_data(index, names, label_settings, feature_settings, dataset, backend):
+    """The windows, features and targets of ``names``: a subset of the given ``dataset`` (built once
+    for several trainings, with the same settings), else built here."""
+    if dataset is None:
+        return build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac,
+                             backend=backend)
+    if dataset.settings != dataset_settings(label_settings, feature_settings, label_settings.ransac):
+        raise ValueError("run_training: the given dataset was built with other label/feature/RANSAC settings "
+                         "than this config's")
+    return dataset.subset(names)
+
+
+def _learn_gains(cfg: dict, out_dir: Path, trials: list, predictions, say) -> None:
+    """The gains of every mode of ``cfg["gains"]`` on the training ``trials`` (their out-of-fold
+    ``predictions``, else the final models' own), into ``out_dir/gains.json``."""
+    gcfg = cfg["gains"]
+    search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in GAIN_KEYS})
+    learn_and_save_gains(out_dir, trials, search, tuple(gcfg.get("modes", ("9d", "6d"))),
+                         jobs=int(cfg["run"]["nthread"]), log=say, predictions=predictions,
+                         vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})))
+
+
 def _data_dir_meta(index):
     """``data_dir`` of the metadata: the directory, or the list of them (trial names ``<dataset>/<trial>``)."""
     root = index.root
@@ -110,14 +132,7 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     say(f"togglecf train: {len(names)} trials from {', '.join(roots) if isinstance(roots, list) else roots} -> {out_dir}"
         + (f" on {backend.describe()}" if backend.name == "dask" else ""))
     t0 = time.perf_counter()
-    if dataset is not None:
-        if dataset.settings != dataset_settings(label_settings, feature_settings, label_settings.ransac):
-            raise ValueError("run_training: the given dataset was built with other label/feature/RANSAC settings "
-                             "than this config's")
-        data = dataset.subset(names)
-    else:
-        data = build_dataset(index, names, label_settings, feature_settings, ransac=label_settings.ransac,
-                             backend=backend)
+    data = _training_data(index, names, label_settings, feature_settings, dataset, backend)
     timing["dataset_s"] = time.perf_counter() - t0
     say(f"{len(data.end)} windows x {data.X.shape[1]} features ({data.train_mask.sum()} training rows) "
         f"in {timing['dataset_s']:.1f} s")
@@ -162,14 +177,10 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
     atomic_write_text(out_dir / "feature_importances.csv", importances_csv(clf, regs, schema))
     if cv:
         atomic_write_text(out_dir / "cv_table.txt", format_cv_table(result["cv"], class_names) + "\n")
-    gcfg = cfg["gains"]
-    if gcfg.get("learn", True):  # the toggling filter's gains, on the same training trials
+    if cfg["gains"].get("learn", True):  # the toggling filter's gains, on the same training trials
         t0 = time.perf_counter()
-        search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in GAIN_KEYS})
-        preds = [result["oof_predictions"][n] for n in names] if oof is not None else None
-        learn_and_save_gains(out_dir, [index.load(n) for n in names], search, tuple(gcfg.get("modes", ("9d", "6d"))),
-                             jobs=int(run["nthread"]), log=say, predictions=preds,
-                             vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})))
+        _learn_gains(cfg, out_dir, [index.load(n) for n in names],
+                     [result["oof_predictions"][n] for n in names] if oof is not None else None, say)
         timing["gains_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     say(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "

@@ -26,7 +26,12 @@ placeholder saying how to produce it when there is no file yet):
   ``embedded_sizes.md``.
 * ``--models DIR`` (default ``models/default``; read: ``cv_table.txt``): ``train_cv.md``.
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
-* always: ``filter_defaults.md``, every filter's settings and defaults, from the code.
+* always: ``filter_defaults.md``, every filter's settings and defaults, from the code; and (with
+  the default ``--out``) the figures of the docs that a command draws (``DOC_FIGURES``, e.g.
+  ``docs/euler_05.png`` by ``togglecf plot euler``), when BROAD is found.
+
+Each header names the run's command, its outputs' paths as that command writes them (never a
+temporary checkout's path) and the code it ran (``core.provenance.source_revision``: the commit).
 """
 from __future__ import annotations
 
@@ -42,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.provenance import source_revision
 from togglecf.report.study_report import (ABLATION_LABELS, ABLATION_ROWS, LABELS, MAIN_FILTERS,
                                           paired_comparison)
 
@@ -62,13 +68,22 @@ def _mtime(path: Path) -> str:
     return _dt.datetime.fromtimestamp(path.stat().st_mtime).astimezone().strftime("%Y-%m-%d %H:%M %Z").strip()
 
 
+#: the top folders of a run's outputs (``make run``, ``togglecf train``): a path is shown from there
+_RUN_FOLDERS = ("reports", "build", "models")
+
+
 def _shown(path) -> str:
-    """A path as the header line shows it: relative to the repository when inside it."""
+    """A path as the header line shows it: relative to the repository when inside it; else from the
+    run's own output folder on (``reports/…``, ``build/…``, ``models/…``: where the run's command
+    writes it), never the temporary checkout it happened to run in."""
     p = Path(path).resolve()
     try:
         return p.relative_to(REPO).as_posix()
     except ValueError:
-        return str(p)
+        pass
+    parts = p.parts
+    tops = [i for i, part in enumerate(parts) if part in _RUN_FOLDERS]
+    return Path(*parts[tops[-1]:]).as_posix() if tops else p.name
 
 
 def header(command: str, source: str) -> str:
@@ -117,8 +132,9 @@ def study_tables(study: Path, out: Path, command: str) -> None:
     trials = res.get("trials", sorted(df["trial"].unique()))
     n_folds = len(res.get("folds", []))
     total_s = res.get("timing", {}).get("total_s")
-    src = (f"the held-out study in `{_shown(study)}` (results.json of {_mtime(study / 'results.json')}; "
-           f"{len(trials)} BROAD trials, {n_folds} folds by whole trial"
+    code = f" at {res['code']}" if res.get("code") else ""
+    src = (f"the held-out study of `make run` in `{_shown(study)}` (results.json of {_mtime(study / 'results.json')}"
+           f"{code}; {len(trials)} BROAD trials, {n_folds} folds by whole trial"
            + (f", run time {total_s / 60:.1f} min" if total_s else "") + ")")
     head = header(command, src)
     wide = df.pivot_table(index="trial", columns="filter", values="total")
@@ -309,7 +325,7 @@ def run_benchmark(name: str, out: Path, quick: bool, extra=(), command: str = SC
             mode = "quick mode"
         else:
             mode = "full mode (the script has no quick mode)"
-    cmd = ["python", f"pipelines/{name}.py", *args]
+    cmd = ["python", f"pipelines/{name}.py", *(_shown(a) if Path(a).is_absolute() else a for a in args)]
     load = _load_average()
     print("running " + " ".join(cmd), flush=True)
     r = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=REPO, check=False)
@@ -317,8 +333,8 @@ def run_benchmark(name: str, out: Path, quick: bool, extra=(), command: str = SC
         print(f"{name} failed (exit {r.returncode}); {name}.md not changed:\n{r.stderr[-2000:]}", file=sys.stderr)
         placeholder(out, f"{name}.md", f"A successful run of `{' '.join(cmd)}`", f"Run `{command}`.")
         return
-    src = (f"`{' '.join(cmd)}` ({mode}) run on {_now()}, {os.cpu_count()} cores, load average {load} before "
-           "the run")
+    src = (f"`{' '.join(cmd)}` ({mode}) run on {_now()} at {source_revision(REPO)}, {os.cpu_count()} cores, load "
+           f"average {load} before the run")
     body = r.stdout.strip()
     table = _written_markdown(body)
     if table is not None:  # the script wrote its own Markdown table: include it, and the rest of its output
@@ -412,6 +428,23 @@ def train_cv(models: Path, out: Path, command: str) -> None:
     write(out, "train_cv.md", header(command, src) + "\nThe cross-validation table `togglecf train` printed "
           "(folds by whole trial, held-out windows):\n\n```text\n" + (models / "cv_table.txt").read_text().strip()
           + "\n```\n")
+
+
+#: the docs' figures that a command draws: file (under docs/) -> the `togglecf` command's arguments
+DOC_FIGURES = {"euler_05.png": ["plot", "euler", "--trial", "05", "--filters", "madgwick,cf"]}
+
+
+def doc_figures(docs: Path) -> None:
+    """Draw every figure of ``DOC_FIGURES`` with its command (BROAD found as `evaluate` finds it); a
+    figure whose command fails (no data here) is kept as it is, and said so."""
+    for name, args in DOC_FIGURES.items():
+        cmd = [sys.executable, "-m", "togglecf", *args, "--out", str(docs / name)]
+        r = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, check=False)
+        shown = "togglecf " + " ".join(args) + f" --out docs/{name}"
+        if r.returncode != 0:
+            print(f"kept docs/{name}: `{shown}` failed: {r.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        else:
+            print(f"wrote docs/{name} (`{shown}`)")
 
 
 def filter_defaults(out: Path, command: str) -> None:
@@ -526,6 +559,8 @@ def main(argv=None) -> int:
         placeholder(out, "bench_dask.md", "A run of `pipelines/bench_dask.py`", f"Run `{SCRIPT} --bench-dask`.")
 
     filter_defaults(out, SCRIPT)
+    if out.resolve() == (REPO / "docs" / "results").resolve():
+        doc_figures(REPO / "docs")
     return 0
 
 

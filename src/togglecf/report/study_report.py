@@ -39,6 +39,8 @@ LABELS = {"vqf_toggling": "VQF core + learned time constants (models in the loop
           "mahony": "Mahony (fold TAGP)", "aqua": "AQUA (fold TAGP)", "ekf": "error-state KF (fold TAGP)"}
 #: filters drawn in ``error_<trial>.png`` (back to front) and, in this order, in ``groups.png``
 ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling", "vqf_toggling")
+#: the bars of the groups figure: the two learned filters, what each is compared with, the fixed CF
+GROUP_FIGURE_FILTERS = ("vqf_toggling", "vqf", "toggling", "madgwick", "cf")
 ABLATION_ROWS = ("vqf_core_defaults", "vqf_taus_only", "vqf_toggling", "vqf_oracle", "toggling", "toggling_only",
                  "noise_only", "ransac_off", "vqf_toggling_6d", "vqf_core_defaults_6d", "toggling_6d", "cf_6d",
                  "madgwick_6d", "vqf_6d")
@@ -242,22 +244,26 @@ def error_figure(name: str, trial, series: dict):
 
 
 def groups_figure(per_group_total: pd.DataFrame):
-    """Bars of mean total RMSE per BROAD group, one bar series per filter of ``MAIN_FILTERS`` found in
-    the columns (label = filter name, colour ``report.style.color``); ``None`` when none is."""
+    """Bars of mean total RMSE per BROAD group, one bar series per filter of ``GROUP_FIGURE_FILTERS``
+    found in the columns (label = filter name, colour ``report.style.color``), each bar labelled with
+    its value (the axis is never clipped); ``None`` when none is. Every row is in ``per_group.csv``."""
     plt = require("matplotlib.pyplot", extra="plot", what="drawing the study report's figures")
 
-    cols = [f for f in MAIN_FILTERS if f in per_group_total]
+    cols = [f for f in GROUP_FIGURE_FILTERS if f in per_group_total]
     if not cols:
         return None
     g = per_group_total[cols]
-    fig, ax = plt.subplots(figsize=(12, 4))
+    fig, ax = plt.subplots(figsize=(12, 4.5))
     w = 0.8 / len(cols)
     x = np.arange(len(g))
     for i, f in enumerate(cols):
-        ax.bar(x + i * w, g[f].to_numpy(), w, label=f, color=color(f))
-    ax.set_xticks(x + 0.4 - w / 2, g.index, rotation=40, ha="right")
-    ax.set(ylabel="mean total RMSE [°]", title="BROAD groups (held-out)")
-    ax.legend(ncols=len(cols), fontsize=8)
+        bars = ax.bar(x + i * w, g[f].to_numpy(), w, label=f, color=color(f))
+        ax.bar_label(bars, fmt="%.1f", fontsize=6, padding=1)
+    ax.set_xticks(x + 0.4 - w / 2, g.index, rotation=30, ha="right")
+    ax.set(ylabel="mean total RMSE [°]", title="BROAD groups (held out)")
+    ax.set_ylim(0, 1.12 * float(np.nanmax(g.to_numpy())))
+    ax.legend(ncols=len(cols), fontsize=8, loc="upper left")
+    fig.tight_layout()
     return fig
 
 

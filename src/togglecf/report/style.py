@@ -24,7 +24,8 @@ FILTER_STYLE: dict[str, dict] = {
     "toggling": {"color": "#1f77b4", "linestyle": "-", "linewidth": 1.2},    # blue: the filter of this project
     "vqf": {"color": "#7f7f7f", "linestyle": "-", "linewidth": 1.0},         # grey: the reference package (C++)
     "vqf_core": {"color": "#17becf", "linestyle": "--", "linewidth": 1.0},   # cyan, dashed: our VQF core
-    "vqf_toggling": {"color": "#08519c", "linestyle": "-", "linewidth": 1.4},  # dark blue: the core, learned
+    "vqf_toggling": {"color": "#c51b7d", "linestyle": "-", "linewidth": 1.4},  # magenta: the VQF core, learned
+    "learned_vqf": {"color": "#c51b7d", "linestyle": "-", "linewidth": 1.4},   # the same, pretrained
     "madgwick": {"color": "#d62728", "linestyle": "-", "linewidth": 1.0},    # red
     "cf": {"color": "#2ca02c", "linestyle": "-", "linewidth": 1.0},          # green: the fixed-gain CF
     "mahony": {"color": "#9467bd", "linestyle": "-", "linewidth": 1.0},      # purple

@@ -8,6 +8,7 @@
 #include <math.h>
 #include <stddef.h>
 #include "tcf_vqf.h"
+#include "tcf_math.h"  /* tcf_q_mul, tcf_q_unit, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
 
 #if defined(__FAST_MATH__)
 #error "tcf_vqf.c must not be compiled with -ffast-math: the bad-sample (NaN/inf) tests would be removed"
@@ -16,8 +17,6 @@
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_vqf_state_bytes_check[(sizeof(tcf_vqf_t) == TCF_VQF_STATE_BYTES) ? 1 : -1];
 
-/* filters/base.py GYRO_FULL_SCALE: a gyro axis at or beyond it is saturated [rad/s] */
-#define TCF_VQF_GYRO_FULL_SCALE 34.9f
 #define TCF_VQF_PI 3.14159265358979f
 #define TCF_VQF_DEG (TCF_VQF_PI / 180.0f)
 #define TCF_VQF_SQRT2 1.41421356237310f
@@ -34,37 +33,8 @@ static float wrapf(float a) {
   return a;
 }
 
-static void q_mul(const float p[4], const float q[4], float out[4]) {
-  float r[4];
-  r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
-  r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
-  r[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
-  r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
-  out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
-}
-
-/* q / |q| (one division); identity for a zero or non-finite norm (_unit) */
-static void q_unit(float q[4]) {
-  float n = sqrtf(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), r;
-  if (!(n > 1e-12f && n < INFINITY)) {
-    q[0] = 1.0f; q[1] = 0.0f; q[2] = 0.0f; q[3] = 0.0f;
-    return;
-  }
-  r = 1.0f / n;
-  q[0] *= r; q[1] *= r; q[2] *= r; q[3] *= r;
-}
-
 /* rotate v from sensor to earth by unit q (rotate_scalar); tcf_vqf.h */
-void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]) {
-  float w = q[0], x = q[1], y = q[2], z = q[3];
-  float tx = 2.0f * (y * v[2] - z * v[1]);
-  float ty = 2.0f * (z * v[0] - x * v[2]);
-  float tz = 2.0f * (x * v[1] - y * v[0]);
-  float r0 = v[0] + w * tx + y * tz - z * ty;
-  float r1 = v[1] + w * ty + z * tx - x * tz;
-  float r2 = v[2] + w * tz + x * ty - y * tx;
-  out[0] = r0; out[1] = r1; out[2] = r2;
-}
+void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]) { tcf_q_rotate(q, 0, v, out); }
 
 /* row-major rotation matrix of unit q (_matrix) */
 static void q_matrix(const float q[4], float r[9]) {
@@ -88,14 +58,6 @@ static void m_mm(const float a[9], const float b[9], float out[9]) {
   for (i = 0; i < 3; ++i)
     for (j = 0; j < 3; ++j)
       out[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
-}
-
-/* finite, non-zero 3-vector (vector_ok) */
-static int vector_ok(const float v[3]) {
-  float n2;
-  if (v == NULL) return 0;
-  n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-  return isfinite(n2) && n2 > 1e-18f;
 }
 
 /* ------------------------------------------------------------------ second-order low-pass */
@@ -314,9 +276,8 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
 
   /* ---------------- gyroscope: a non-finite or saturated reading (comparisons false for NaN)
      or an invalid dt is neither integrated nor learnt from */
-  if (fabsf(gyr[0]) < TCF_VQF_GYRO_FULL_SCALE && fabsf(gyr[1]) < TCF_VQF_GYRO_FULL_SCALE &&
-      fabsf(gyr[2]) < TCF_VQF_GYRO_FULL_SCALE && isfinite(dt) && dt > 0.0f && dt <= p->max_dt) {
-    float rv[3], angle, kk, dq[4];
+  if (tcf_gyro_ok(gyr) && isfinite(dt) && dt > 0.0f && dt <= p->max_dt) {
+    float rv[3], dq[4];
     if (rest_lp_on) {  /* (R1) */
       float g[3], d2 = 0.0f;
       ready = lp_begin(&f->rgyr_h);
@@ -339,15 +300,13 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
     /* Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual dt
        (from_rotvec_scalar) */
     for (i = 0; i < 3; ++i) rv[i] = (gyr[i] - f->bias[i]) * dt;
-    angle = sqrtf(rv[0] * rv[0] + rv[1] * rv[1] + rv[2] * rv[2]);
-    kk = angle < 1e-6f ? 0.5f - angle * angle / 48.0f : sinf(0.5f * angle) / angle;
-    dq[0] = cosf(0.5f * angle); dq[1] = kk * rv[0]; dq[2] = kk * rv[1]; dq[3] = kk * rv[2];
-    q_mul(f->q_gyr, dq, f->q_gyr);
-    q_unit(f->q_gyr);
+    tcf_q_from_rotvec(rv, dq);
+    tcf_q_mul(f->q_gyr, dq, f->q_gyr);
+    tcf_q_unit(f->q_gyr);
   }
 
   /* ---------------- accelerometer */
-  if (vector_ok(acc)) {
+  if (acc != NULL && tcf_vec_ok(acc)) {
     float ai[3], fl[3], ae[3], na;
     if (rest_bias) {  /* (R2) */
       float l[3], d2 = 0.0f;
@@ -375,13 +334,13 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
       } else {  /* a points down: the 180 deg correction about any horizontal axis */
         corr[0] = 0.0f; corr[1] = 1.0f; corr[2] = 0.0f; corr[3] = 0.0f;
       }
-      q_mul(corr, f->q_acc, f->q_acc);
-      q_unit(f->q_acc);
+      tcf_q_mul(corr, f->q_acc, f->q_acc);
+      tcf_q_unit(f->q_acc);
       f->initialised = 1u;
 
       if (rest_bias || p->motion_bias) {  /* gyro bias estimation (B1)-(B5) */
         float b0 = f->bias[0], b1 = f->bias[1], b2 = f->bias[2], r[9], rl[9], rb[2], P[9], s[9];
-        q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
+        tcf_q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
         have_q6 = 1;
         q_matrix(q6, r);  /* R(q_6D) */
         rb[0] = r[0] * b0 + r[1] * b1 + r[2] * b2;
@@ -414,10 +373,10 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
     }
   }
 
-  if (!have_q6) q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
+  if (!have_q6) tcf_q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
 
   /* ---------------- magnetometer (9D) */
-  if (p->use_mag && vector_ok(mag)) {
+  if (p->use_mag && mag != NULL && tcf_vec_ok(mag)) {
     float me[3], dis, kinit;
     tcf_vqf_rotate(q6, mag, me);  /* Alg. 1 l. 17 */
     if (p->mag_rejection) {

@@ -4,62 +4,23 @@
  *   toggling/inloop.py     inloop_batch (one sample)         -> tcf_filter_update_dt (the models:
  *                                                               tcf_features_push, tcf_features.c)
  *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
- *   filters/base.py        vector_ok, gyro_increment, acc_mag_quaternion
- *   quaternion.py          multiply/normalize/rotate/from_rotvec/from_matrix/from_acc_mag (_scalar)
+ *   filters/base.py        gyro_increment, acc_mag_quaternion (vector_ok: tcf_math.h)
+ *   quaternion.py          from_matrix/from_acc_mag (_scalar); multiply/normalize/rotate/from_rotvec
+ *                          (_scalar) are in tcf_math.h
  * The comments "step N" refer to the steps of the module docstring of filters/toggling.py.
  */
 #include <math.h>
 #include <stddef.h>
 #include "tcf_filter.h"
+#include "tcf_math.h"  /* tcf_q_mul, tcf_q_normalize, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
 
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
-
-/* filters/base.py GYRO_FULL_SCALE: a gyro axis at or beyond it is saturated [rad/s] */
-#define TCF_GYRO_FULL_SCALE 34.9f
 
 static const float tcf_alpha_acc[TCF_N_CLASSES] = TCF_ALPHA_ACC_INIT;
 static const float tcf_alpha_mag[TCF_N_CLASSES] = TCF_ALPHA_MAG_INIT;
 
 /* ------------------------------------------------------------------ quaternion.py (_scalar) */
-
-static void q_mul(const float p[4], const float q[4], float out[4]) {
-  float r[4];
-  r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
-  r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
-  r[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
-  r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
-  out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
-}
-
-/* unit quaternion; identity for a zero or non-finite input (normalize_scalar) */
-static void q_normalize(float q[4]) {
-  float n = sqrtf(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  if (!(n > 1e-12f) || !isfinite(n)) {
-    q[0] = 1.0f; q[1] = 0.0f; q[2] = 0.0f; q[3] = 0.0f;
-    return;
-  }
-  q[0] /= n; q[1] /= n; q[2] /= n; q[3] /= n;
-}
-
-/* rotate v from sensor to earth by q (rotate_scalar); conj = 1: by q* (rotate_inverse_scalar) */
-static void q_rotate(const float q[4], int conj, const float v[3], float out[3]) {
-  float w = q[0], x = conj ? -q[1] : q[1], y = conj ? -q[2] : q[2], z = conj ? -q[3] : q[3];
-  float tx = 2.0f * (y * v[2] - z * v[1]);
-  float ty = 2.0f * (z * v[0] - x * v[2]);
-  float tz = 2.0f * (x * v[1] - y * v[0]);
-  float r0 = v[0] + w * tx + y * tz - z * ty;
-  float r1 = v[1] + w * ty + z * tx - x * tz;
-  float r2 = v[2] + w * tz + x * ty - y * tx;
-  out[0] = r0; out[1] = r1; out[2] = r2;
-}
-
-/* exponential map of a rotation vector [rad] (from_rotvec_scalar) */
-static void q_from_rotvec(float rx, float ry, float rz, float q[4]) {
-  float angle = sqrtf(rx * rx + ry * ry + rz * rz);
-  float k = angle < 1e-6f ? 0.5f - angle * angle / 48.0f : sinf(0.5f * angle) / angle;
-  q[0] = cosf(0.5f * angle); q[1] = k * rx; q[2] = k * ry; q[3] = k * rz;
-}
 
 /* Shepperd's method on a row-major rotation matrix, w >= 0 (from_matrix_scalar) */
 static void q_from_matrix(const float r[9], float q[4]) {
@@ -73,7 +34,7 @@ static void q_from_matrix(const float r[9], float q[4]) {
   } else {
     q[0] = r[3] - r[1]; q[1] = r[2] + r[6]; q[2] = r[5] + r[7]; q[3] = 1.0f - r[0] - r[4] + r[8];
   }
-  q_normalize(q);
+  tcf_q_normalize(q);
   if (q[0] < 0.0f) { q[0] = -q[0]; q[1] = -q[1]; q[2] = -q[2]; q[3] = -q[3]; }
 }
 
@@ -98,20 +59,15 @@ static int q_from_acc_mag(const float a[3], const float m[3], float q[4]) {
 
 /* ------------------------------------------------------------------ filters/base.py */
 
-/* finite, non-zero 3-vector (vector_ok) */
-static int vector_ok(const float v[3]) {
-  float n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-  return isfinite(n2) && n2 > 1e-18f;
-}
-
 /* exp(w dt / 2), 0 (dq = identity) for a non-finite or saturated w or an invalid dt
    (gyro_increment; the comparisons are false for NaN) */
 static int gyro_increment(const float w[3], float dt, float dq[4]) {
+  float rv[3];
   dq[0] = 1.0f; dq[1] = 0.0f; dq[2] = 0.0f; dq[3] = 0.0f;
-  if (!(fabsf(w[0]) < TCF_GYRO_FULL_SCALE && fabsf(w[1]) < TCF_GYRO_FULL_SCALE && fabsf(w[2]) < TCF_GYRO_FULL_SCALE))
-    return 0;
+  if (!tcf_gyro_ok(w)) return 0;
   if (!(isfinite(dt) && dt > 0.0f && dt <= TCF_MAX_DT)) return 0;
-  q_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt, dq);
+  rv[0] = w[0] * dt; rv[1] = w[1] * dt; rv[2] = w[2] * dt;
+  tcf_q_from_rotvec(rv, dq);
   return 1;
 }
 
@@ -129,15 +85,15 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
     if (ok) {
       float u[3];
       u[0] = acc[0] / na; u[1] = acc[1] / na; u[2] = acc[2] / na;
-      q_rotate(q_ref, 0, u, g);
+      tcf_q_rotate(q_ref, 0, u, g);
     }
     if (1.0f + g[2] > 1e-9f) {  /* rotation taking g onto +z */
       dq[0] = 1.0f + g[2]; dq[1] = g[1]; dq[2] = -g[0]; dq[3] = 0.0f;
-      q_normalize(dq);
+      tcf_q_normalize(dq);
     } else {  /* measured up is predicted down: any horizontal axis will do */
       dq[0] = 0.0f; dq[1] = 1.0f; dq[2] = 0.0f; dq[3] = 0.0f;
     }
-    q_mul(dq, q_ref, q);
+    tcf_q_mul(dq, q_ref, q);
   }
   if (q[0] * q_ref[0] + q[1] * q_ref[1] + q[2] * q_ref[2] + q[3] * q_ref[3] < 0.0f) {
     q[0] = -q[0]; q[1] = -q[1]; q[2] = -q[2]; q[3] = -q[3];
@@ -187,8 +143,8 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     a_d[j] = eta_ok ? acc[j] - TCF_NOISE_WEIGHT_ACC * eta_a[j] : acc[j];
     m_d[j] = eta_ok ? mag[j] - TCF_NOISE_WEIGHT_MAG * eta_m[j] : mag[j];
   }
-  acc_ok = vector_ok(a_d);
-  mag_ok = TCF_USE_MAG && vector_ok(m_d);
+  acc_ok = tcf_vec_ok(a_d);
+  mag_ok = TCF_USE_MAG && tcf_vec_ok(m_d);
   if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* trust the magnetometer less when a disturbance is predicted */
     float e2 = eta_m[0] * eta_m[0] + eta_m[1] * eta_m[1] + eta_m[2] * eta_m[2];
     alpha_m = alpha_m / (1.0f + e2 / (TCF_MAG_DISTURBANCE_SCALE * TCF_MAG_DISTURBANCE_SCALE));
@@ -208,13 +164,12 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
       if (mag_ok) {
         f->m_pred[0] = m_d[0]; f->m_pred[1] = m_d[1]; f->m_pred[2] = m_d[2];
       } else {
-        q_rotate(q0, 1, north, f->m_pred);  /* in 6D m_pred is unused */
+        tcf_q_rotate(q0, 1, north, f->m_pred);  /* in 6D m_pred is unused */
       }
     }
     return;
   }
-  g_ok = fabsf(gyr[0]) < TCF_GYRO_FULL_SCALE && fabsf(gyr[1]) < TCF_GYRO_FULL_SCALE &&
-         fabsf(gyr[2]) < TCF_GYRO_FULL_SCALE;
+  g_ok = tcf_gyro_ok(gyr);
   if (g_ok && TCF_BIAS_GAIN > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
     float rx = gyr[0] - f->bias[0], ry = gyr[1] - f->bias[1], rz = gyr[2] - f->bias[2];
     if (rx * rx + ry * ry + rz * rz < TCF_BIAS_GATE * TCF_BIAS_GATE) {
@@ -224,10 +179,10 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   }
   w[0] = gyr[0] - f->bias[0]; w[1] = gyr[1] - f->bias[1]; w[2] = gyr[2] - f->bias[2];
   if (gyro_increment(w, dt, dq) && g_ok) {  /* step 2: gyro propagation */
-    q_mul(f->q, dq, f->q);
-    q_normalize(f->q);
-    q_rotate(dq, 1, f->a_pred, f->a_pred);  /* earth-fixed directions rotate opposite to the body */
-    q_rotate(dq, 1, f->m_pred, f->m_pred);
+    tcf_q_mul(f->q, dq, f->q);
+    tcf_q_normalize(f->q);
+    tcf_q_rotate(dq, 1, f->a_pred, f->a_pred);  /* earth-fixed directions rotate opposite to the body */
+    tcf_q_rotate(dq, 1, f->m_pred, f->m_pred);
   }
   if (acc_ok) {  /* step 5: vector CF step */
     for (j = 0; j < 3; ++j) f->a_pred[j] = (1.0f - alpha_a) * f->a_pred[j] + alpha_a * a_d[j];
@@ -240,7 +195,7 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   if (acc_mag_quaternion(f->q, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
     const float c = 1.0f - TCF_GAMMA;  /* step 7: output blend (LERP on the short arc) */
     for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + TCF_GAMMA * q_am[j];
-    q_normalize(f->q);
+    tcf_q_normalize(f->q);
   }
 }
 

@@ -1,6 +1,7 @@
 /* tcf_vqf.c: the VQF-class core filter in C99, float32 (API and design notes in tcf_vqf.h).
  *
- * Line-by-line port of togglecf/filters/vqf_core.py (vqf_core_step, _bias_update, ...,
+ * Line-by-line port of togglecf/filters/vqf_core.py (core_update and its parts update_gyr,
+ * update_acc, update_bias, update_mag, update_output; _bias_update, ...,
  * VQFCoreFilter._coefficients and reset); the comments (R1)...(M5), (B1)...(B5) and
  * "Alg. 1 l. N" refer to that module's docstring. The second-order low-passes run in the same
  * "delta" form as the Python's _lp (lp_step below), in float32 instead of float64.
@@ -8,6 +9,7 @@
 #include <math.h>
 #include <stddef.h>
 #include "tcf_vqf.h"
+#include "tcf_math.h"  /* tcf_q_mul, tcf_q_unit, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
 
 #if defined(__FAST_MATH__)
 #error "tcf_vqf.c must not be compiled with -ffast-math: the bad-sample (NaN/inf) tests would be removed"
@@ -16,8 +18,6 @@
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_vqf_state_bytes_check[(sizeof(tcf_vqf_t) == TCF_VQF_STATE_BYTES) ? 1 : -1];
 
-/* filters/base.py GYRO_FULL_SCALE: a gyro axis at or beyond it is saturated [rad/s] */
-#define TCF_VQF_GYRO_FULL_SCALE 34.9f
 #define TCF_VQF_PI 3.14159265358979f
 #define TCF_VQF_DEG (TCF_VQF_PI / 180.0f)
 #define TCF_VQF_SQRT2 1.41421356237310f
@@ -34,37 +34,8 @@ static float wrapf(float a) {
   return a;
 }
 
-static void q_mul(const float p[4], const float q[4], float out[4]) {
-  float r[4];
-  r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
-  r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
-  r[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
-  r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
-  out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
-}
-
-/* q / |q| (one division); identity for a zero or non-finite norm (_unit) */
-static void q_unit(float q[4]) {
-  float n = sqrtf(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), r;
-  if (!(n > 1e-12f && n < INFINITY)) {
-    q[0] = 1.0f; q[1] = 0.0f; q[2] = 0.0f; q[3] = 0.0f;
-    return;
-  }
-  r = 1.0f / n;
-  q[0] *= r; q[1] *= r; q[2] *= r; q[3] *= r;
-}
-
 /* rotate v from sensor to earth by unit q (rotate_scalar); tcf_vqf.h */
-void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]) {
-  float w = q[0], x = q[1], y = q[2], z = q[3];
-  float tx = 2.0f * (y * v[2] - z * v[1]);
-  float ty = 2.0f * (z * v[0] - x * v[2]);
-  float tz = 2.0f * (x * v[1] - y * v[0]);
-  float r0 = v[0] + w * tx + y * tz - z * ty;
-  float r1 = v[1] + w * ty + z * tx - x * tz;
-  float r2 = v[2] + w * tz + x * ty - y * tx;
-  out[0] = r0; out[1] = r1; out[2] = r2;
-}
+void tcf_vqf_rotate(const float q[4], const float v[3], float out[3]) { tcf_q_rotate(q, 0, v, out); }
 
 /* row-major rotation matrix of unit q (_matrix) */
 static void q_matrix(const float q[4], float r[9]) {
@@ -88,14 +59,6 @@ static void m_mm(const float a[9], const float b[9], float out[9]) {
   for (i = 0; i < 3; ++i)
     for (j = 0; j < 3; ++j)
       out[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
-}
-
-/* finite, non-zero 3-vector (vector_ok) */
-static int vector_ok(const float v[3]) {
-  float n2;
-  if (v == NULL) return 0;
-  n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-  return isfinite(n2) && n2 > 1e-18f;
 }
 
 /* ------------------------------------------------------------------ second-order low-pass */
@@ -301,192 +264,199 @@ void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float si
   m->rest_th_acc_sq = c->rest_th_acc_sq;
 }
 
-/* ------------------------------------------------------------------ the step */
+/* ------------------------------------------------------------------ the step
+ * One sample as VQF (dlaidig/vqf updateGyr, updateAcc, updateMag) and the Python core
+ * (filters/vqf_core.py core_update: update_gyr, update_acc, update_bias, update_mag,
+ * update_output): gyroscope, then accelerometer (with the bias estimation), then magnetometer,
+ * then the output. *m holds the coefficients a learned filter modulates. */
 
-/* core_update: vqf_core_step with the modulated coefficients *m */
-void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
-                        const tcf_vqf_mod_t *m) {
+/* update_gyr: a valid gyro sample [rad/s] over dt [s]: rest detection (R1), then Alg. 1 l. 8 */
+static void tcf_vqf_update_gyr(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float gyr[3], float dt) {
   const tcf_vqf_coef_t *p = &f->c;
-  const float ts = p->ts;
-  const int rest_bias = p->rest_bias != 0u, rest_lp_on = rest_bias || p->mag_rejection != 0u;
-  float q6[4] = {1.0f, 0.0f, 0.0f, 0.0f}, k = 0.0f;
-  int have_q6 = 0, ready, i;
-
-  /* ---------------- gyroscope: a non-finite or saturated reading (comparisons false for NaN)
-     or an invalid dt is neither integrated nor learnt from */
-  if (fabsf(gyr[0]) < TCF_VQF_GYRO_FULL_SCALE && fabsf(gyr[1]) < TCF_VQF_GYRO_FULL_SCALE &&
-      fabsf(gyr[2]) < TCF_VQF_GYRO_FULL_SCALE && isfinite(dt) && dt > 0.0f && dt <= p->max_dt) {
-    float rv[3], angle, kk, dq[4];
-    if (rest_lp_on) {  /* (R1) */
-      float g[3], d2 = 0.0f;
-      ready = lp_begin(&f->rgyr_h);
-      for (i = 0; i < 3; ++i) g[i] = lp_step(f->rgyr_lp[i], gyr[i], ready, f->rgyr_h.n, &p->rest_lp);
-      lp_end(&f->rgyr_h, f->rgyr_lp, 3, ready, p->rest_tau, ts);
-      for (i = 0; i < 3; ++i) {
-        float d = gyr[i] - g[i];
-        f->rest_gyr_lp[i] = g[i];
-        d2 += d * d;
-      }
-      if (d2 >= m->rest_th_gyr_sq || fabsf(g[0]) > p->bias_clip || fabsf(g[1]) > p->bias_clip ||
-          fabsf(g[2]) > p->bias_clip) {
-        f->rest_t = 0.0f;
-        f->rest = 0u;
-      } else {
-        f->rest_t += ts;
-        if (f->rest_t >= p->rest_min_t) f->rest = 1u;
-      }
+  float rv[3], dq[4];
+  int ready, i;
+  if (p->rest_bias || p->mag_rejection) {  /* (R1); the rest low-pass also feeds (M3) */
+    float g[3], d2 = 0.0f;
+    ready = lp_begin(&f->rgyr_h);
+    for (i = 0; i < 3; ++i) g[i] = lp_step(f->rgyr_lp[i], gyr[i], ready, f->rgyr_h.n, &p->rest_lp);
+    lp_end(&f->rgyr_h, f->rgyr_lp, 3, ready, p->rest_tau, p->ts);
+    for (i = 0; i < 3; ++i) {
+      float d = gyr[i] - g[i];
+      f->rest_gyr_lp[i] = g[i];
+      d2 += d * d;
     }
-    /* Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual dt
-       (from_rotvec_scalar) */
-    for (i = 0; i < 3; ++i) rv[i] = (gyr[i] - f->bias[i]) * dt;
-    angle = sqrtf(rv[0] * rv[0] + rv[1] * rv[1] + rv[2] * rv[2]);
-    kk = angle < 1e-6f ? 0.5f - angle * angle / 48.0f : sinf(0.5f * angle) / angle;
-    dq[0] = cosf(0.5f * angle); dq[1] = kk * rv[0]; dq[2] = kk * rv[1]; dq[3] = kk * rv[2];
-    q_mul(f->q_gyr, dq, f->q_gyr);
-    q_unit(f->q_gyr);
-  }
-
-  /* ---------------- accelerometer */
-  if (vector_ok(acc)) {
-    float ai[3], fl[3], ae[3], na;
-    if (rest_bias) {  /* (R2) */
-      float l[3], d2 = 0.0f;
-      ready = lp_begin(&f->racc_h);
-      for (i = 0; i < 3; ++i) l[i] = lp_step(f->racc_lp[i], acc[i], ready, f->racc_h.n, &p->rest_lp);
-      lp_end(&f->racc_h, f->racc_lp, 3, ready, p->rest_tau, ts);
-      for (i = 0; i < 3; ++i) d2 += (acc[i] - l[i]) * (acc[i] - l[i]);
-      if (d2 >= m->rest_th_acc_sq) {
-        f->rest_t = 0.0f;
-        f->rest = 0u;
-      }
-    }
-    tcf_vqf_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
-    ready = lp_begin(&f->acc_h);  /* Alg. 1 l. 10 */
-    for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &m->acc_lp);
-    lp_end(&f->acc_h, f->acc_lp, 3, ready, p->tau_acc, ts);
-    tcf_vqf_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
-    na = sqrtf(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2]);
-    if (na > 0.0f && na < INFINITY) {
-      float rn = 1.0f / na, ax = ae[0] * rn, ay = ae[1] * rn, az = ae[2] * rn;  /* Alg. 1 l. 12 */
-      float qw2 = 0.5f * (az + 1.0f), qw = sqrtf(qw2 > 0.0f ? qw2 : 0.0f), corr[4];  /* Alg. 1 l. 13 */
-      if (qw > 1e-6f) {  /* Alg. 1 l. 14 */
-        float h = 0.5f / qw;
-        corr[0] = qw; corr[1] = ay * h; corr[2] = -ax * h; corr[3] = 0.0f;
-      } else {  /* a points down: the 180 deg correction about any horizontal axis */
-        corr[0] = 0.0f; corr[1] = 1.0f; corr[2] = 0.0f; corr[3] = 0.0f;
-      }
-      q_mul(corr, f->q_acc, f->q_acc);
-      q_unit(f->q_acc);
-      f->initialised = 1u;
-
-      if (rest_bias || p->motion_bias) {  /* gyro bias estimation (B1)-(B5) */
-        float b0 = f->bias[0], b1 = f->bias[1], b2 = f->bias[2], r[9], rl[9], rb[2], P[9], s[9];
-        q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
-        have_q6 = 1;
-        q_matrix(q6, r);  /* R(q_6D) */
-        rb[0] = r[0] * b0 + r[1] * b1 + r[2] * b2;
-        rb[1] = r[3] * b0 + r[4] * b1 + r[5] * b2;
-        ready = lp_begin(&f->r_h);  /* R_bar = LP_2(R; tau_acc) */
-        for (i = 0; i < 9; ++i) rl[i] = lp_step(f->r_lp[i], r[i], ready, f->r_h.n, &m->acc_lp);
-        lp_end(&f->r_h, f->r_lp, 9, ready, p->tau_acc, ts);
-        ready = lp_begin(&f->rb_h);  /* (R b)_bar = LP_2(R b; tau_acc), x and y */
-        for (i = 0; i < 2; ++i) rb[i] = lp_step(f->rb_lp[i], rb[i], ready, f->rb_h.n, &m->acc_lp);
-        lp_end(&f->rb_h, f->rb_lp, 2, ready, p->tau_acc, ts);
-        bias_predict(f);  /* (B1) */
-        for (i = 0; i < 9; ++i) P[i] = f->bias_p[i];
-        if (rest_bias && f->rest) {  /* (B2): y = rest LP of the gyro, M = I, P M^T = P */
-          float w = p->bias_w_rest;
-          for (i = 0; i < 9; ++i) s[i] = P[i];
-          s[0] += w; s[4] += w; s[8] += w;
-          bias_update(f, f->rest_gyr_lp[0] - b0, f->rest_gyr_lp[1] - b1, f->rest_gyr_lp[2] - b2, P, s);
-        } else if (p->motion_bias) {  /* (B3): M = R_bar */
-          float ex = -ay * p->inv_ts + rb[0] - (rl[0] * b0 + rl[1] * b1 + rl[2] * b2);
-          float ey = ax * p->inv_ts + rb[1] - (rl[3] * b0 + rl[4] * b1 + rl[5] * b2);
-          float ez = -(rl[6] * b0 + rl[7] * b1 + rl[8] * b2);
-          float pmt[9];
-          m_mmt(P, rl, pmt);  /* P M^T */
-          m_mm(rl, pmt, s);   /* M P M^T */
-          s[0] += m->bias_w_motion; s[4] += m->bias_w_motion; s[8] += m->bias_w_vertical;
-          bias_update(f, ex, ey, ez, pmt, s);
-        }
-        for (i = 0; i < 3; ++i) f->bias[i] = clipf(f->bias[i], p->bias_clip);
-      }
+    if (d2 >= m->rest_th_gyr_sq || fabsf(g[0]) > p->bias_clip || fabsf(g[1]) > p->bias_clip ||
+        fabsf(g[2]) > p->bias_clip) {
+      f->rest_t = 0.0f;
+      f->rest = 0u;
+    } else {
+      f->rest_t += p->ts;
+      if (f->rest_t >= p->rest_min_t) f->rest = 1u;
     }
   }
+  /* Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual dt */
+  for (i = 0; i < 3; ++i) rv[i] = (gyr[i] - f->bias[i]) * dt;
+  tcf_q_from_rotvec(rv, dq);
+  tcf_q_mul(f->q_gyr, dq, f->q_gyr);
+  tcf_q_unit(f->q_gyr);
+}
 
-  if (!have_q6) q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
-
-  /* ---------------- magnetometer (9D) */
-  if (p->use_mag && vector_ok(mag)) {
-    float me[3], dis, kinit;
-    tcf_vqf_rotate(q6, mag, me);  /* Alg. 1 l. 17 */
-    if (p->mag_rejection) {
-      float nrm = sqrtf(me[0] * me[0] + me[1] * me[1] + me[2] * me[2]);  /* (M1) */
-      float dip = -asinf(clipf(me[2] / nrm, 1.0f)), ref_n, cand_n;
-      if (p->mag_cur_tau > 0.0f) {
-        ready = lp_begin(&f->mag_h);
-        nrm = lp_step(f->mag_lp[0], nrm, ready, f->mag_h.n, &p->mag_lp);
-        dip = lp_step(f->mag_lp[1], dip, ready, f->mag_h.n, &p->mag_lp);
-        lp_end(&f->mag_h, f->mag_lp, 2, ready, p->mag_cur_tau, ts);
-      }
-      ref_n = f->mag_ref_norm;  /* (M2) */
-      if (fabsf(nrm - ref_n) < p->mag_norm_th * ref_n && fabsf(dip - f->mag_ref_dip) < p->mag_dip_th) {
-        f->mag_undisturbed_t += ts;
-        if (f->mag_undisturbed_t >= p->mag_min_undisturbed_t) {
-          f->mag_dist = 0u;
-          f->mag_ref_norm += p->k_mag_ref * (nrm - ref_n);
-          f->mag_ref_dip += p->k_mag_ref * (dip - f->mag_ref_dip);
-        }
-      } else {
-        f->mag_undisturbed_t = 0.0f;
-        f->mag_dist = 1u;
-      }
-      cand_n = f->mag_cand_norm;  /* (M3) */
-      if (fabsf(nrm - cand_n) < p->mag_norm_th * cand_n && fabsf(dip - f->mag_cand_dip) < p->mag_dip_th) {
-        const float *g = f->rest_gyr_lp;
-        if (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] >= p->mag_new_min_gyr_sq) f->mag_cand_t += ts;
-        f->mag_cand_norm += p->k_mag_ref * (nrm - cand_n);
-        f->mag_cand_dip += p->k_mag_ref * (dip - f->mag_cand_dip);
-        if (f->mag_dist && (f->mag_cand_t >= p->mag_new_time ||
-                            (f->mag_ref_norm == 0.0f && f->mag_cand_t >= p->mag_new_first_time))) {
-          f->mag_ref_norm = f->mag_cand_norm;
-          f->mag_ref_dip = f->mag_cand_dip;
-          f->mag_dist = 0u;
-          f->mag_undisturbed_t = p->mag_min_undisturbed_t;
-        }
-      } else {
-        f->mag_cand_t = 0.0f;
-        f->mag_cand_norm = nrm;
-        f->mag_cand_dip = dip;
-      }
+/* update_acc: a valid accelerometer sample [m/s^2]: rest detection (R2), then the inclination
+   correction (Alg. 1 l. 9-14). Returns 1 when q_acc was corrected, with *ax, *ay the normalised
+   low-passed acceleration in the 6D earth frame (l. 12) that the bias estimation (B3) uses. */
+static int tcf_vqf_update_acc(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float acc[3], float *ax, float *ay) {
+  const tcf_vqf_coef_t *p = &f->c;
+  float ai[3], fl[3], ae[3], na, rn, az, qw2, qw, corr[4];
+  int ready, i;
+  if (p->rest_bias) {  /* (R2) */
+    float l[3], d2 = 0.0f;
+    ready = lp_begin(&f->racc_h);
+    for (i = 0; i < 3; ++i) l[i] = lp_step(f->racc_lp[i], acc[i], ready, f->racc_h.n, &p->rest_lp);
+    lp_end(&f->racc_h, f->racc_lp, 3, ready, p->rest_tau, p->ts);
+    for (i = 0; i < 3; ++i) d2 += (acc[i] - l[i]) * (acc[i] - l[i]);
+    if (d2 >= m->rest_th_acc_sq) {
+      f->rest_t = 0.0f;
+      f->rest = 0u;
     }
-    dis = wrapf(atan2f(me[0], me[1]) - f->delta);  /* Alg. 1 l. 18-19 */
-    k = m->k_mag;
-    if (p->mag_rejection) {  /* (M4) */
-      if (f->mag_dist) {
-        if (f->mag_reject_t <= p->mag_max_rejection_t) {
-          f->mag_reject_t += ts;
-          k = 0.0f;
-        } else {
-          k = k / p->mag_rejection_factor;
-        }
-      } else {
-        float t = f->mag_reject_t - p->mag_rejection_factor * ts;
-        f->mag_reject_t = t > 0.0f ? t : 0.0f;
-      }
-    }
-    kinit = f->k_mag_init;  /* (M5): k >= 1/N for the N-th sample while 1/N tau_mag >= Ts */
-    if (kinit != 0.0f) {
-      if (kinit > k) k = kinit;
-      kinit = kinit / (kinit + 1.0f);
-      f->k_mag_init = kinit * p->tau_mag < ts ? 0.0f : kinit;
-    }
-    f->delta = wrapf(f->delta + k * dis);  /* Alg. 1 l. 19 */
   }
-  f->k_mag_last = k;
+  tcf_vqf_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
+  ready = lp_begin(&f->acc_h);  /* Alg. 1 l. 10 */
+  for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &m->acc_lp);
+  lp_end(&f->acc_h, f->acc_lp, 3, ready, p->tau_acc, p->ts);
+  tcf_vqf_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
+  na = sqrtf(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2]);
+  if (!(na > 0.0f && na < INFINITY)) return 0;
+  rn = 1.0f / na;
+  *ax = ae[0] * rn; *ay = ae[1] * rn; az = ae[2] * rn;  /* Alg. 1 l. 12 */
+  qw2 = 0.5f * (az + 1.0f);
+  qw = sqrtf(qw2 > 0.0f ? qw2 : 0.0f);  /* Alg. 1 l. 13 */
+  if (qw > 1e-6f) {  /* Alg. 1 l. 14 */
+    float h = 0.5f / qw;
+    corr[0] = qw; corr[1] = *ay * h; corr[2] = -*ax * h; corr[3] = 0.0f;
+  } else {  /* a points down: the 180 deg correction about any horizontal axis */
+    corr[0] = 0.0f; corr[1] = 1.0f; corr[2] = 0.0f; corr[3] = 0.0f;
+  }
+  tcf_q_mul(corr, f->q_acc, f->q_acc);
+  tcf_q_unit(f->q_acc);
+  f->initialised = 1u;
+  return 1;
+}
 
-  /* ---------------- output */
-  if (p->use_mag) {  /* Alg. 1 l. 21: q_9D = [cos delta/2, 0, 0, sin delta/2] (x) q_6D */
+/* update_bias: gyro bias estimation (B1)-(B5) after an inclination correction with the
+   normalised low-passed acceleration (ax, ay) in the 6D earth frame; q6 = q_6D (Alg. 1 l. 15) */
+static void tcf_vqf_update_bias(tcf_vqf_t *f, const tcf_vqf_mod_t *m, float ax, float ay, float q6[4]) {
+  const tcf_vqf_coef_t *p = &f->c;
+  float b0 = f->bias[0], b1 = f->bias[1], b2 = f->bias[2], r[9], rl[9], rb[2], P[9], s[9];
+  int ready, i;
+  tcf_q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
+  q_matrix(q6, r);  /* R(q_6D) */
+  rb[0] = r[0] * b0 + r[1] * b1 + r[2] * b2;
+  rb[1] = r[3] * b0 + r[4] * b1 + r[5] * b2;
+  ready = lp_begin(&f->r_h);  /* R_bar = LP_2(R; tau_acc) */
+  for (i = 0; i < 9; ++i) rl[i] = lp_step(f->r_lp[i], r[i], ready, f->r_h.n, &m->acc_lp);
+  lp_end(&f->r_h, f->r_lp, 9, ready, p->tau_acc, p->ts);
+  ready = lp_begin(&f->rb_h);  /* (R b)_bar = LP_2(R b; tau_acc), x and y */
+  for (i = 0; i < 2; ++i) rb[i] = lp_step(f->rb_lp[i], rb[i], ready, f->rb_h.n, &m->acc_lp);
+  lp_end(&f->rb_h, f->rb_lp, 2, ready, p->tau_acc, p->ts);
+  bias_predict(f);  /* (B1) */
+  for (i = 0; i < 9; ++i) P[i] = f->bias_p[i];
+  if (p->rest_bias && f->rest) {  /* (B2): y = rest LP of the gyro, M = I, P M^T = P */
+    float w = p->bias_w_rest;
+    for (i = 0; i < 9; ++i) s[i] = P[i];
+    s[0] += w; s[4] += w; s[8] += w;
+    bias_update(f, f->rest_gyr_lp[0] - b0, f->rest_gyr_lp[1] - b1, f->rest_gyr_lp[2] - b2, P, s);
+  } else if (p->motion_bias) {  /* (B3): M = R_bar */
+    float ex = -ay * p->inv_ts + rb[0] - (rl[0] * b0 + rl[1] * b1 + rl[2] * b2);
+    float ey = ax * p->inv_ts + rb[1] - (rl[3] * b0 + rl[4] * b1 + rl[5] * b2);
+    float ez = -(rl[6] * b0 + rl[7] * b1 + rl[8] * b2);
+    float pmt[9];
+    m_mmt(P, rl, pmt);  /* P M^T */
+    m_mm(rl, pmt, s);   /* M P M^T */
+    s[0] += m->bias_w_motion; s[4] += m->bias_w_motion; s[8] += m->bias_w_vertical;
+    bias_update(f, ex, ey, ez, pmt, s);
+  }
+  for (i = 0; i < 3; ++i) f->bias[i] = clipf(f->bias[i], p->bias_clip);
+}
+
+/* _mag_disturbance: magnetic disturbance detection (M1)-(M3) from the field me in the 6D earth frame */
+static void tcf_vqf_mag_disturbance(tcf_vqf_t *f, const float me[3]) {
+  const tcf_vqf_coef_t *p = &f->c;
+  float nrm = sqrtf(me[0] * me[0] + me[1] * me[1] + me[2] * me[2]);  /* (M1) */
+  float dip = -asinf(clipf(me[2] / nrm, 1.0f)), ref_n, cand_n;
+  if (p->mag_cur_tau > 0.0f) {
+    int ready = lp_begin(&f->mag_h);
+    nrm = lp_step(f->mag_lp[0], nrm, ready, f->mag_h.n, &p->mag_lp);
+    dip = lp_step(f->mag_lp[1], dip, ready, f->mag_h.n, &p->mag_lp);
+    lp_end(&f->mag_h, f->mag_lp, 2, ready, p->mag_cur_tau, p->ts);
+  }
+  ref_n = f->mag_ref_norm;  /* (M2) */
+  if (fabsf(nrm - ref_n) < p->mag_norm_th * ref_n && fabsf(dip - f->mag_ref_dip) < p->mag_dip_th) {
+    f->mag_undisturbed_t += p->ts;
+    if (f->mag_undisturbed_t >= p->mag_min_undisturbed_t) {
+      f->mag_dist = 0u;
+      f->mag_ref_norm += p->k_mag_ref * (nrm - ref_n);
+      f->mag_ref_dip += p->k_mag_ref * (dip - f->mag_ref_dip);
+    }
+  } else {
+    f->mag_undisturbed_t = 0.0f;
+    f->mag_dist = 1u;
+  }
+  cand_n = f->mag_cand_norm;  /* (M3) */
+  if (fabsf(nrm - cand_n) < p->mag_norm_th * cand_n && fabsf(dip - f->mag_cand_dip) < p->mag_dip_th) {
+    const float *g = f->rest_gyr_lp;
+    if (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] >= p->mag_new_min_gyr_sq) f->mag_cand_t += p->ts;
+    f->mag_cand_norm += p->k_mag_ref * (nrm - cand_n);
+    f->mag_cand_dip += p->k_mag_ref * (dip - f->mag_cand_dip);
+    if (f->mag_dist && (f->mag_cand_t >= p->mag_new_time ||
+                        (f->mag_ref_norm == 0.0f && f->mag_cand_t >= p->mag_new_first_time))) {
+      f->mag_ref_norm = f->mag_cand_norm;
+      f->mag_ref_dip = f->mag_cand_dip;
+      f->mag_dist = 0u;
+      f->mag_undisturbed_t = p->mag_min_undisturbed_t;
+    }
+  } else {
+    f->mag_cand_t = 0.0f;
+    f->mag_cand_norm = nrm;
+    f->mag_cand_dip = dip;
+  }
+}
+
+/* update_mag: a valid magnetometer sample (9D) with the current q_6D: disturbance detection
+   (M1)-(M3), then the heading correction (Alg. 1 l. 17-19, (M4), (M5)). Returns the gain used. */
+static float tcf_vqf_update_mag(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float mag[3], const float q6[4]) {
+  const tcf_vqf_coef_t *p = &f->c;
+  float me[3], dis, kinit, k;
+  tcf_vqf_rotate(q6, mag, me);  /* Alg. 1 l. 17 */
+  if (p->mag_rejection) tcf_vqf_mag_disturbance(f, me);
+  dis = wrapf(atan2f(me[0], me[1]) - f->delta);  /* Alg. 1 l. 18-19 */
+  k = m->k_mag;
+  if (p->mag_rejection) {  /* (M4) */
+    if (f->mag_dist) {
+      if (f->mag_reject_t <= p->mag_max_rejection_t) {
+        f->mag_reject_t += p->ts;
+        k = 0.0f;
+      } else {
+        k = k / p->mag_rejection_factor;
+      }
+    } else {
+      float t = f->mag_reject_t - p->mag_rejection_factor * p->ts;
+      f->mag_reject_t = t > 0.0f ? t : 0.0f;
+    }
+  }
+  kinit = f->k_mag_init;  /* (M5): k >= 1/N for the N-th sample while 1/N tau_mag >= Ts */
+  if (kinit != 0.0f) {
+    if (kinit > k) k = kinit;
+    kinit = kinit / (kinit + 1.0f);
+    f->k_mag_init = kinit * p->tau_mag < p->ts ? 0.0f : kinit;
+  }
+  f->delta = wrapf(f->delta + k * dis);  /* Alg. 1 l. 19 */
+  return k;
+}
+
+/* update_output: the output orientation, Alg. 1 l. 21 in 9D, q_6D in 6D */
+static void tcf_vqf_update_output(tcf_vqf_t *f, const float q6[4]) {
+  int i;
+  if (f->c.use_mag) {  /* Alg. 1 l. 21: q_9D = [cos delta/2, 0, 0, sin delta/2] (x) q_6D */
     float h = 0.5f * f->delta, c = cosf(h), s = sinf(h);
     f->q[0] = c * q6[0] - s * q6[3];
     f->q[1] = c * q6[1] - s * q6[2];
@@ -495,6 +465,25 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
   } else {
     for (i = 0; i < 4; ++i) f->q[i] = q6[i];
   }
+}
+
+/* core_update: vqf_core_step with the modulated coefficients *m. Bad samples (tcf_vqf.h): an
+   invalid gyro sample or dt skips update_gyr, an invalid acc sample update_acc and update_bias,
+   an invalid or missing mag sample update_mag. */
+void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,
+                        const tcf_vqf_mod_t *m) {
+  const tcf_vqf_coef_t *p = &f->c;
+  float q6[4], ax, ay, k = 0.0f;
+  int have_q6 = 0;  /* q_6D is computed once per sample, in the bias estimation when it runs */
+  if (tcf_gyro_ok(gyr) && isfinite(dt) && dt > 0.0f && dt <= p->max_dt) tcf_vqf_update_gyr(f, m, gyr, dt);
+  if (acc != NULL && tcf_vec_ok(acc) && tcf_vqf_update_acc(f, m, acc, &ax, &ay) && (p->rest_bias || p->motion_bias)) {
+    tcf_vqf_update_bias(f, m, ax, ay, q6);
+    have_q6 = 1;
+  }
+  if (!have_q6) tcf_q_mul(f->q_acc, f->q_gyr, q6);  /* Alg. 1 l. 15 */
+  if (p->use_mag && mag != NULL && tcf_vec_ok(mag)) k = tcf_vqf_update_mag(f, m, mag, q6);
+  f->k_mag_last = k;
+  tcf_vqf_update_output(f, q6);
 }
 
 /* ------------------------------------------------------------------ getters */

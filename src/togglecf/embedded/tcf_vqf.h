@@ -13,10 +13,10 @@
  * Ts = 1/fs by tcf_vqf_init (float32, once; same formulas as VQFCoreFilter._coefficients)
  * and kept inside tcf_vqf_t, so rate and settings can be chosen at run time.
  * Measured (gcc 12, -Os): sizeof(tcf_vqf_t) = TCF_VQF_STATE_BYTES = 532 bytes; object code
- * of tcf_vqf.c + tcf_vqf_standalone.c 5432 B text on a Cortex-M4F (hard float), 9840 B on
- * rv32imc (soft float), 8908 B on x86-64 (tcf_vqf.c alone, as the learned filter links it:
- * 5132 B / 9406 B on M4F / rv32imc); stack of the deepest tcf_vqf_update call chain 560 B
- * (M4F) / 704 B (rv32imc), libm routines not counted (togglecf.embedded.cvqf.export_c_vqf
+ * of tcf_vqf.c + tcf_vqf_standalone.c 5472 B text on a Cortex-M4F (hard float), 9754 B on
+ * rv32imc (soft float), 8889 B on x86-64 (tcf_vqf.c alone, as the learned filter links it:
+ * 5172 B / 9320 B on M4F / rv32imc); stack of the deepest tcf_vqf_update call chain 488 B
+ * (M4F) / 640 B (rv32imc), libm routines not counted (togglecf.embedded.cvqf.export_c_vqf
  * reports all of these).
  *
  * Low-pass filters: the second-order Butterworth LP_2 in the "delta" form of the Python filter

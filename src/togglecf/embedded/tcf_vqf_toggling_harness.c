@@ -19,73 +19,41 @@
  *
  * The filter itself needs no heap; this harness allocates the input and output arrays.
  */
-#include <errno.h>
-#include <math.h>
-#include <stdio.h>
-#include <stdlib.h>
-#include <string.h>
-#include <time.h>
-#define TCF_CSV_READ /* tcf_csv_read */
+#define TCF_CSV_LEARNED_INPUTS /* tcf_csv_learned_begin */
 #include "tcf_csv.h"
 #include "tcf_vqf_toggling.h"
 
 #define PROG "tcf_vqf_toggling_harness"
 #define N_DIAG (TCF_N_PRED + 6)
 
-static const char *class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
+static const char *const class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
 
 int main(int argc, char **argv) {
-  const char *in_path = NULL, *out_path = NULL, *pred_path = NULL;
-  int no_mag = 0, diag = 0, timing = 0, i, k;
-  long n = 0, s;
-  float *x = NULL, *px = NULL, *qo = NULL, *dg = NULL;
-  FILE *fout;
+  int status;
+  long s;
+  tcf_csv_learned_t h;
   static tcf_vqft_t f;
   clock_t t0, t1;
 
-  for (i = 1; i < argc; ++i) {
-    if (strcmp(argv[i], "--no-mag") == 0) no_mag = 1;
-    else if (strcmp(argv[i], "--diag") == 0) diag = 1;
-    else if (strcmp(argv[i], "--time") == 0) timing = 1;
-    else if (strcmp(argv[i], "--pred") == 0 && i + 1 < argc) pred_path = argv[++i];
-    else if (argv[i][0] == '-' && argv[i][1] != '\0') {
-      fprintf(stderr, PROG ": unknown option %s (or its argument is missing)\n", argv[i]);
-      return 2;
-    } else if (!in_path) in_path = argv[i];
-    else if (!out_path) out_path = argv[i];
-    else {
-      fprintf(stderr, PROG ": too many arguments\n");
-      return 2;
-    }
-  }
-  if (!in_path || !out_path) {
-    fprintf(stderr, "usage: " PROG " [--no-mag] [--diag] [--time] [--pred pred.csv] in.csv out.csv\n  in.csv: header + "
-                    "gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,mag_y,mag_z] per sample (rad/s, m/s^2, uT) at %g Hz\n",
-            (double)TCF_FS);
-    return 2;
-  }
-  if (tcf_csv_read_learned_inputs(PROG, in_path, pred_path, TCF_N_PRED, &x, &n, &no_mag, &px)) return 1;
-  qo = (float *)malloc(sizeof(float) * 4 * (size_t)(n ? n : 1));
-  dg = (float *)malloc(sizeof(float) * N_DIAG * (size_t)(n ? n : 1));
-  if (!qo || !dg) {
-    free(x); free(px); free(qo); free(dg);
-    return tcf_csv_fail(PROG, in_path, 0, "out of memory", NULL);
-  }
+  h.n_diag = N_DIAG;
+  status = tcf_csv_learned_begin(PROG, argc, argv, NULL, 0, "[--no-mag] [--diag] [--time] [--pred pred.csv] in.csv "
+                                 "out.csv", (double)TCF_FS, TCF_N_PRED, &h);
+  if (status) return status;
   if (tcf_vqft_init(&f) != 0) {
-    free(x); free(px); free(qo); free(dg);
+    tcf_csv_learned_free(&h);
     fprintf(stderr, PROG ": the core refused the settings of tcf_vqf_config.h\n");
     return 1;
   }
   t0 = clock();
-  for (s = 0; s < n; ++s) {
-    const float *r = x + 9 * s;
-    if (px)
-      tcf_vqft_update_pred(&f, r, r + 3, no_mag ? NULL : r + 6, TCF_DT, px + (long)TCF_N_PRED * s);
+  for (s = 0; s < h.n; ++s) {
+    const float *r = h.x + 9 * s;
+    if (h.px)
+      tcf_vqft_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, TCF_DT, h.px + (long)TCF_N_PRED * s);
     else
-      tcf_vqft_update(&f, r, r + 3, no_mag ? NULL : r + 6);
-    tcf_vqft_quat(&f, qo + 4 * s);
-    if (diag) {
-      float *d = dg + N_DIAG * s;
+      tcf_vqft_update(&f, r, r + 3, h.no_mag ? NULL : r + 6);
+    tcf_vqft_quat(&f, h.qo + 4 * s);
+    if (h.diag) {
+      float *d = h.dg + N_DIAG * s;
       tcf_vqft_prediction(&f, d);
       d[TCF_N_PRED] = f.tau_acc;
       d[TCF_N_PRED + 1] = f.tau_mag;
@@ -96,23 +64,8 @@ int main(int argc, char **argv) {
     }
   }
   t1 = clock();
-  if (timing)
-    fprintf(stderr, PROG ": %ld samples, %.1f ns/sample (tcf_vqft_update, clock()), state %u bytes\n", n,
-            n ? 1e9 * (double)(t1 - t0) / CLOCKS_PER_SEC / (double)n : 0.0, (unsigned)sizeof(tcf_vqft_t));
-  fout = fopen(out_path, "w");
-  if (!fout) {
-    free(x); free(px); free(qo); free(dg);
-    return tcf_csv_fail(PROG, out_path, 0, "cannot write:", strerror(errno));
-  }
-  fputs("w,x,y,z", fout);
-  if (diag) {
-    for (k = 0; k < TCF_N_CLASSES; ++k) fprintf(fout, ",p_%s", class_names[k]);
-    fputs(",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,tau_acc,tau_mag,trust,fallback,rest,mag_dist",
-          fout);
-  }
-  fputc('\n', fout);
-  tcf_csv_write_rows(fout, qo, dg, n, N_DIAG, diag);
-  free(x); free(px); free(qo); free(dg);
-  if (fclose(fout) != 0) return tcf_csv_fail(PROG, out_path, 0, "write failed:", strerror(errno));
-  return 0;
+  if (h.timing) tcf_csv_print_time(PROG, "tcf_vqft_update", h.n, t0, t1, (unsigned)sizeof(tcf_vqft_t));
+  return tcf_csv_learned_end(PROG, &h, class_names, TCF_N_CLASSES,
+                             ",eta_acc_x,eta_acc_y,eta_acc_z,eta_mag_x,eta_mag_y,eta_mag_z,tau_acc,tau_mag,trust,"
+                             "fallback,rest,mag_dist");
 }

@@ -218,7 +218,7 @@ def add_stream_parser(subparsers):
     sp.add_argument("--units", default="gyr=rad/s,acc=m/s2,mag=uT",
                     help="input units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; acc: m/s2|g|mg; "
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
-    sp.add_argument("--time-unit", choices=LazyChoices("togglecf.live.stream", "TIME_UNITS", sort=True),
+    sp.add_argument("--time-unit", choices=LazyChoices("togglecf.core.units", "TIME_UNITS", sort=True),
                     metavar="UNIT", default="s", help="unit of the timestamp t: one of %(choices)s")
     # required: every time constant is converted at this rate, and a wrong guess (BROAD's 285.714 Hz for a
     # 100-Hz sensor) silently scales them all

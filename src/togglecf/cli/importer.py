@@ -13,7 +13,7 @@ def cmd_import(args):
     if args.reference:  # refuse at once, before a file is read
         check_extra("import", what=REFERENCE_WHAT)
     settings = ImportSettings(units=args.units, time_unit=args.time_unit, frame=args.frame, quat_order=args.quat_order,
-                              calibrate_mag=args.calibrate_mag, fast_alignment=args.fast)
+                              calibrate_mag=args.calibrate_mag, thorough=args.thorough)
     if args.calibrate_mag and not args.reference:
         raise ValueError("--calibrate-mag needs --reference (the calibration runs with the alignment)")
     result = import_recording(args.imu, args.out, args.reference, name=args.name, groups=args.group or ("imported",),

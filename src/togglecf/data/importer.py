@@ -85,9 +85,11 @@ class ImportSettings:
             in all directions away from iron.
         mag_norm_ut: field strength [µT] the calibrated magnetometer is scaled to; ``None``: the
             median norm of the uncalibrated one (the unit stays what the log said).
-        fast_alignment: qmt's ``fast`` for ``syncOptImu`` and ``alignOptImu`` (one start point
-            instead of 49 and 24; seconds instead of a minute on a long recording; can miss a
-            mounting rotation far from identity).
+        thorough: qmt's full searches, as BROAD was made: ``syncOptImu`` from 49 start points and
+            ``alignOptImu`` from 24 (every axis-aligned mounting), for an IMU mounted at an unknown
+            angle to the markers. Default ``False``: qmt's ``fast`` (one start each, from a
+            cross-correlated offset and the identity mounting): seconds instead of many minutes,
+            and enough for a mounting within some tens of degrees of the markers' axes.
         rest_threshold: BROAD's movement rule: rotation rate [rad/s] (after its low-pass filters)
             under which a sample is at rest.
         min_rest_s: rests longer than this [s] are not scored.
@@ -101,7 +103,7 @@ class ImportSettings:
     quat_order: str = "wxyz"
     calibrate_mag: bool = False
     mag_norm_ut: float | None = None
-    fast_alignment: bool = False
+    thorough: bool = False
     rest_threshold: float = 0.3
     min_rest_s: float = 5.0
     rest_margin_s: float = 0.5
@@ -322,7 +324,7 @@ def _synchronise(imu: ImuLog, ref: ReferenceLog, settings: ImportSettings) -> di
         raise DataError(ref.source, "t", f"the reference's stamps ({ref.time[0]:.3f} to {ref.time[-1]:.3f} s) "
                         f"hardly overlap the IMU's ({imu.time[0]:.3f} to {imu.time[-1]:.3f} s): the two logs must "
                         "be on roughly the same clock (within 15 % of the recording's length)")
-    sync = qmt.SyncMapper(qmt.syncOptImu(q_raw, rate, imu.gyr, rate, dict(fast=settings.fast_alignment)))
+    sync = qmt.SyncMapper(qmt.syncOptImu(q_raw, rate, imu.gyr, rate, dict(fast=not settings.thorough)))
     # opt index j (the reference at IMU stamp j) happened at IMU index a*j + b
     b = float(sync.map("opt", "ind", 0.0, "imu", "ind"))
     a = float(sync.map("opt", "ind", 1.0, "imu", "ind")) - b
@@ -356,7 +358,7 @@ def align_reference(imu: ImuLog, ref: ReferenceLog, settings: ImportSettings = I
         rate, _ = _clock_line(imu.time)
         mag, mag_report = (_calibrate_mag(imu, rate, settings) if settings.calibrate_mag
                            else (imu.mag, {"calibrated": False}))
-        alignment = qmt.alignOptImu(imu.gyr, imu.acc, mag, q_ref, pos_ref, rate, dict(fast=settings.fast_alignment))
+        alignment = qmt.alignOptImu(imu.gyr, imu.acc, mag, q_ref, pos_ref, rate, dict(fast=not settings.thorough))
     q_imu2seg, q_frame = np.asarray(alignment["qImu2Seg"]), np.asarray(alignment["qEOpt2EImu"])
     opt_quat = quat.multiply(quat.multiply(q_frame, q_ref), q_imu2seg)
     info = alignment["info"]

@@ -129,7 +129,8 @@ def test_a_phone_trial_written_as_csv_and_imported_back_scores_the_same(tmp_path
         got, _ = score_trial(back, spec)
         for key in ("total", "heading", "inclination"):
             diff = abs(got.errors[key] - want.errors[key])
-            print(f"{name} {key}: original {want.errors[key]:.4f}°, imported {got.errors[key]:.4f}°, diff {diff:.2e}°")
+            print(f"{name} {key}: original {want.errors[key]:.4f}°, imported {got.errors[key]:.4f}°, "
+                  f"diff {diff:.2e}°")
             assert diff < 0.05
 
 
@@ -165,6 +166,7 @@ def _run_import(capsys, *argv):
     ("nan_only_column", "field 'acc_y': no finite value"),
     ("unknown_unit", "--units: unknown unit 'furlong/s' for gyr"),
     ("quaternion_order", "field 'q0': row 0: quaternion norm"),
+    ("units_forgotten", "field 'acc': median |acc| = 1: looks like g"),
 ])
 def test_bad_input_is_one_line_naming_the_file_and_column(case, needle, tmp_path, capsys):
     argv = []
@@ -178,6 +180,8 @@ def test_bad_input_is_one_line_naming_the_file_and_column(case, needle, tmp_path
         log = _small_log(tmp_path, edit=lambda c: c.__setitem__((slice(None), 5), np.nan))
     elif case == "unknown_unit":
         log, argv = _small_log(tmp_path), ["--units", "gyr=furlong/s"]
+    elif case == "units_forgotten":  # a log in g read as m/s²: the trial's unit check, naming --units
+        log = _small_log(tmp_path, edit=lambda c: c.__setitem__((slice(None), slice(4, 7)), c[:, 4:7] / 9.81))
     else:  # a quaternion that is not one (wrong scale): refused, not imported as garbage
         log = _small_log(tmp_path, header=IMU_HEADER + ",q0,q1,q2,q3", extra=[np.tile([2.0, 0.0, 0.0, 0.0], (300, 1))])
     rc, err = _run_import(capsys, log, "--out", tmp_path / "out", *argv)

@@ -161,8 +161,9 @@ def add_import_parser(subparsers):
     sp.add_argument("--quat-order", choices=("wxyz", "xyzw"), default="wxyz", help="order of q0..q3 (default: wxyz)")
     sp.add_argument("--calibrate-mag", action="store_true", help="with --reference: remove hard and soft iron "
                     "(qmt.calibrateMagnetometerSimple; slow rotations in all directions, away from iron)")
-    sp.add_argument("--thorough", action="store_true", help="with --reference: qmt's full searches as BROAD was made "
-                    "(24 mountings: an IMU at any angle to the markers; many minutes); default: one start each, seconds")
+    sp.add_argument("--thorough", action="store_true", help="with --reference: qmt's full searches as BROAD was "
+                    "made (24 mountings: an IMU at any angle to the markers; many minutes); default: one start each, "
+                    "seconds")
     sp.add_argument("--no-plot", dest="plot", action="store_false", help="no residual plot")
     sp.set_defaults(func=Run("import", "togglecf.cli.importer:cmd_import"))
     return sp

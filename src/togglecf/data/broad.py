@@ -33,7 +33,7 @@ __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
     "check_evaluable", "MultiIndex", "open_index", "resolve_data_dirs", "trial_fields", "REQUIRED_FIELDS",
-    "OPTIONAL_FIELDS", "short_trial_name", "copy_hdf5_trial", "write_broad_hdf5",
+    "OPTIONAL_FIELDS", "short_trial_name", "copy_hdf5_trial", "write_broad_hdf5", "checked_time_stamps",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -217,14 +217,21 @@ def _checked_time(src, time, n: int) -> np.ndarray:
         t = t.reshape(-1)
     if t.shape != (n,):
         raise DataError(src, "imu_time", f"expected shape ({n},), got {t.shape}")
+    return checked_time_stamps(src, "imu_time", t)
+
+
+def checked_time_stamps(src, field_name: str, t, unit: str = "s", to_seconds: float = 1.0) -> np.ndarray:
+    """Time stamps ``t (N,)`` in ``unit`` as float64 seconds (times ``to_seconds``); ``DataError`` on
+    ``field_name`` of ``src`` naming the first row that is not finite or does not increase."""
+    t = np.asarray(t, dtype=np.float64)
     if not np.all(np.isfinite(t)):
-        raise DataError(src, "imu_time", f"time stamp {int(np.argmin(np.isfinite(t)))} is not finite")
+        raise DataError(src, field_name, f"row {int(np.argmin(np.isfinite(t)))} has no time stamp (not finite)")
     steps = np.diff(t)
     if np.any(steps <= 0):
         k = int(np.argmax(steps <= 0)) + 1
-        raise DataError(src, "imu_time", f"not strictly increasing: stamp {k} ({float(t[k])!r} s) follows "
-                        f"{float(t[k - 1])!r} s")
-    return t
+        raise DataError(src, field_name, f"time stamps must increase: row {k} ({t[k]:.10g} {unit}) follows "
+                                         f"{t[k - 1]:.10g} {unit}")
+    return t * to_seconds
 
 
 # ------------------------------------------------------------------------------------------ loading

@@ -30,10 +30,10 @@ reference frame): ``opt_quat = qEOpt2EImu ⊗ q_ref ⊗ qImu2Seg``. The residual
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import os
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +43,7 @@ from togglecf.core import quaternion as quat
 from togglecf.core.extras import MissingExtraError, check_extra, deferred, require
 from togglecf.core.io import atomic_write_json
 from togglecf.core.units import TIME_UNITS, parse_units
-from togglecf.data.broad import DataError, Trial, min_samples, write_broad_hdf5
+from togglecf.data.broad import DataError, Trial, checked_time_stamps, min_samples, write_broad_hdf5
 
 __all__ = ["ImportSettings", "ImportResult", "ImuLog", "ReferenceLog", "import_recording", "read_imu_log",
            "read_reference_log", "align_reference", "broad_movement", "add_to_index", "summary_text",
@@ -68,7 +68,7 @@ _NPZ_KEYS = {"t": ("t",), "gyr": IMU_COLUMNS[1:4], "acc": IMU_COLUMNS[4:7], "mag
              "quat": _QUAT_COLUMNS, "pos": _POS_COLUMNS, "movement": ("movement",)}
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class ImportSettings:
     """How ``import_recording`` reads and aligns a recording.
 
@@ -116,7 +116,7 @@ class ImportSettings:
                 raise ValueError(f"--{name.replace('_', '-')}: unknown value {value!r} (one of {', '.join(known)})")
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class ImuLog:
     """An IMU log converted to the package's units (N samples): ``time (N,)`` [s], ``gyr``, ``acc``,
     ``mag`` ``(N, 3)`` [rad/s, m/s², µT]; ``quat (N, 4)`` sensor -> ENU, ``pos (N, 3)`` [m, ENU] and
@@ -137,7 +137,7 @@ class ImuLog:
         return float(1.0 / np.median(np.diff(self.time)))
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class ReferenceLog:
     """A reference (mocap) log on its own clock (M samples): ``time (M,)`` [s], ``quat (M, 4)``
     marker -> reference earth frame converted to ENU (NaN rows where lost), ``pos (M, 3)`` [m] or ``None``."""
@@ -148,7 +148,7 @@ class ReferenceLog:
     pos: np.ndarray | None = None
 
 
-@dataclass
+@dataclasses.dataclass
 class ImportResult:
     """What ``import_recording`` wrote: the trial, its HDF5 file, the report (also saved as
     ``<name>.import.json``; ``summary_text`` prints it) and the residual plot (``None`` without a
@@ -158,7 +158,7 @@ class ImportResult:
     path: Path
     report: dict
     plot: Path | None = None
-    files: list = field(default_factory=list)
+    files: list = dataclasses.field(default_factory=list)
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -202,8 +202,9 @@ def _npz_columns(path, arrays: dict) -> dict:
 def _npy_columns(path, arr, names: tuple) -> dict:
     widths = {len(names) - 3, len(names)} if names == REFERENCE_COLUMNS else {len(names), len(names) + 4}
     if arr.ndim != 2 or arr.shape[1] not in widths:
+        optional = ", q0..q3" if names == IMU_COLUMNS else ""
         raise DataError(path, None, f"expected a 2-D array with {' or '.join(map(str, sorted(widths)))} columns "
-                                    f"({', '.join(names)}{', q0..q3' if names == IMU_COLUMNS else ''}), got {arr.shape}")
+                                    f"({', '.join(names)}{optional}), got {arr.shape}")
     cols = names + (_QUAT_COLUMNS if names == IMU_COLUMNS else ())
     return {n: arr[:, i] for i, n in enumerate(cols[:arr.shape[1]])}
 
@@ -226,15 +227,7 @@ def _vector(path, cols: dict, names, required: bool = True) -> np.ndarray | None
 
 
 def _time(path, cols: dict, settings: ImportSettings) -> np.ndarray:
-    t = _column(path, cols, "t") * TIME_UNITS[settings.time_unit]
-    if not np.all(np.isfinite(t)):
-        raise DataError(path, "t", f"row {int(np.argmin(np.isfinite(t)))} has no time stamp")
-    steps = np.diff(t)
-    if np.any(steps <= 0):
-        k = int(np.argmax(steps <= 0)) + 1
-        raise DataError(path, "t", f"time stamps must increase: row {k} ({cols['t'][k]:g} {settings.time_unit}) "
-                                   f"follows {cols['t'][k - 1]:g} {settings.time_unit}")
-    return t
+    return checked_time_stamps(path, "t", _column(path, cols, "t"), settings.time_unit, TIME_UNITS[settings.time_unit])
 
 
 def _quaternions(path, cols: dict, settings: ImportSettings) -> np.ndarray | None:
@@ -364,7 +357,8 @@ def align_reference(imu: ImuLog, ref: ReferenceLog, settings: ImportSettings = I
     info = alignment["info"]
     report = {
         "clock_offset_s": sync["offset_s"], "clock_drift_ppm": sync["drift_ppm"],
-        "imu_to_marker": q_imu2seg, "imu_to_marker_deg": float(np.degrees(quat.angle_between(q_imu2seg, quat.IDENTITY))),
+        "imu_to_marker": q_imu2seg,
+        "imu_to_marker_deg": float(np.degrees(quat.angle_between(q_imu2seg, quat.IDENTITY))),
         "reference_frame": q_frame, "reference_tilt_deg": float(alignment["qEOpt2EImu_6D_total_deg"]),
         "reference_heading_deg": float(np.degrees(quat.to_euler_zyx(q_frame)[2])),
         "gyr_bias": np.asarray(info["bias"][0]), "acc_bias": np.asarray(info["accbias"]), "gravity": float(info["g"]),
@@ -575,14 +569,16 @@ def import_recording(imu_path, out_dir, reference=None, *, name: str | None = No
         raise (_units_hint(exc, settings) if exc.field in ("gyr", "acc") else exc) from None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    report = {"name": name, "source": str(imu.source), "n_samples": trial.n_samples, "duration_s": float(np.ptp(imu.time)),
-              "sampling_rate": fs, "movement_share": float(movement.mean()), "movement_from": movement_from,
-              "settings": settings.__dict__, **{k: v for k, v in ref.items() if k != "residuals"}}
-    files = [atomic_write_json(out_dir / f"{name}.import.json", report)]
-    png = plot_residuals(imu.time, ref["residuals"], out_dir / f"{name}.import.png") if plot and "residuals" in ref \
-        else None
-    files += [p for p in (png,) if p is not None]
-    path = _write_trial(out_dir / f"{name}.hdf5", trial, f"togglecf import of {imu.source.name}\n" + summary_text(report))
+    report = {"name": name, "source": str(imu.source), "n_samples": trial.n_samples,
+              "duration_s": float(np.ptp(imu.time)), "sampling_rate": fs, "movement_share": float(movement.mean()),
+              "movement_from": movement_from, "settings": dataclasses.asdict(settings),
+              **{k: v for k, v in ref.items() if k != "residuals"}}
+    report_file = atomic_write_json(out_dir / f"{name}.import.json", report)
+    png = None
+    if plot and "residuals" in ref:
+        png = plot_residuals(imu.time, ref["residuals"], out_dir / f"{name}.import.png")
+    info = f"togglecf import of {imu.source.name}\n" + summary_text(report)
+    path = _write_trial(out_dir / f"{name}.hdf5", trial, info)
     description = f"imported from {imu.source.name}" + (f", reference {Path(reference).name}" if reference else "")
-    files.append(add_to_index(out_dir, name, description, groups))
-    return ImportResult(trial, path, report, png, [path, *files])
+    index_file = add_to_index(out_dir, name, description, groups)  # last: the index lists only a written trial
+    return ImportResult(trial, path, report, png, [path, report_file, *([png] if png else []), index_file])

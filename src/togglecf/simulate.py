@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from togglecf.core import quaternion as quat
-from togglecf.data.broad import GRAVITY, Trial
+from togglecf.data.broad import GRAVITY, Trial, write_broad_hdf5  # noqa: F401 (in __all__)
 
 __all__ = ["EARTH_MAG_ENU", "imu_from_orientation", "static_trajectory", "axis_sweep_trajectory",
            "random_smooth_trajectory", "gimbal_trajectory", "turntable_trajectory", "random_walk_bias",
@@ -223,21 +223,3 @@ def taps(n: int, fs: float, times=(5.0,), peak: float = 8.0, freq_hz: float = 60
         on = tau >= 0
         out[on] += (peak * np.exp(-tau[on] / decay_s) * np.sin(2 * np.pi * freq_hz * tau[on]))[:, None] * u
     return out
-
-
-def write_broad_hdf5(path, trial: Trial, info: str) -> None:
-    """Write ``trial`` as one HDF5 file in BROAD's layout: the datasets ``imu_gyr``, ``imu_acc``,
-    ``imu_mag``, ``opt_quat``, ``opt_pos`` (float64) and ``movement`` (bool), gzip-compressed, and
-    the file attributes ``sampling_rate`` [Hz] and ``info`` (say where the data come from). No HDF5
-    timestamps: the same trial gives the same bytes."""
-    import h5py
-
-    opt_pos = np.full((trial.n_samples, 3), np.nan) if trial.opt_pos is None else trial.opt_pos
-    fields = {"imu_gyr": trial.gyr, "imu_acc": trial.acc, "imu_mag": trial.mag, "opt_quat": trial.opt_quat,
-              "opt_pos": opt_pos, "movement": np.asarray(trial.movement, bool)}
-    with h5py.File(path, "w", track_order=True) as f:
-        f.attrs["sampling_rate"] = float(trial.fs)
-        f.attrs["info"] = info
-        for k, v in fields.items():
-            f.create_dataset(k, data=v, dtype=bool if k == "movement" else np.float64, compression="gzip",
-                             compression_opts=9, track_times=False)

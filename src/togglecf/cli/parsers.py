@@ -16,10 +16,10 @@ from togglecf.core.extras import check_extra
 from togglecf.data.broad import SELECTION_HELP
 
 __all__ = ["DESCRIPTION", "Run", "LazyChoices", "build_parser", "add_train_parser", "add_plot_parser",
-           "add_stream_parser", "add_export_parser", "add_prune_parser", "add_sweep_arguments"]
+           "add_stream_parser", "add_export_parser", "add_prune_parser", "add_sweep_arguments", "add_import_parser"]
 
 DESCRIPTION = ("togglecf: orientation filters on BROAD (evaluate, tune), the learning pipeline (train), views "
-               "(plot), live orientation (stream), embedded C code (export), data (trials, download).")
+               "(plot), live orientation (stream), embedded C code (export), data (trials, download, import).")
 
 
 class Run:
@@ -134,7 +134,39 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--url", default=None, help="archive URL (default: BROAD's GitHub main branch zip)")
     sp.add_argument("--format", choices=("hdf5", "mat", "both"), default="hdf5")
     sp.set_defaults(func=Run("download", "togglecf.cli.data:cmd_download"))
+    add_import_parser(sub)
     return p
+
+
+def add_import_parser(subparsers):
+    """``togglecf import``: a CSV/NumPy log (and a mocap reference) into BROAD's layout."""
+    sp = subparsers.add_parser("import", help="turn a CSV/NumPy IMU log (and a mocap reference: synchronised and "
+                               "aligned with qmt) into a trial in BROAD's layout that evaluate reads")
+    sp.add_argument("imu", metavar="IMU", help="IMU log: .csv with a header (t, gyr_x..z, acc_x..z, mag_x..z; optional "
+                    "q0..q3, pos_x..z, movement), .npz or .npy (docs/guide/import.md)")
+    sp.add_argument("--reference", metavar="MOCAP", help="reference log on its own clock (t, q0..q3, optional "
+                    "pos_x..z): resampled, clock offset and drift, IMU-to-marker rotation and frame found with qmt "
+                    "(the [import] extra)")
+    sp.add_argument("--out", required=True, metavar="DIR", help="data directory: NAME.hdf5, trials.json (updated), "
+                    "NAME.import.json (the report), NAME.import.png (residuals, with --reference and matplotlib)")
+    sp.add_argument("--name", help="trial name (default: the IMU log's file name without its suffix)")
+    sp.add_argument("--group", action="append", metavar="G", help="group in trials.json, repeatable "
+                    "(default: imported)")
+    sp.add_argument("--units", metavar="SPEC", help="the logs' units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; "
+                    "acc: m/s2|g|mg; mag: uT|gauss|mT|nT; default rad/s, m/s2, uT)")
+    sp.add_argument("--time-unit", choices=LazyChoices("togglecf.core.units", "TIME_UNITS", sort=True), metavar="UNIT",
+                    default="s", help="unit of the t columns: one of %(choices)s (default: s)")
+    sp.add_argument("--frame", choices=("enu", "ned"), default="enu",
+                    help="earth frame of the reference quaternions and positions (default: enu)")
+    sp.add_argument("--quat-order", choices=("wxyz", "xyzw"), default="wxyz", help="order of q0..q3 (default: wxyz)")
+    sp.add_argument("--calibrate-mag", action="store_true", help="with --reference: remove hard and soft iron "
+                    "(qmt.calibrateMagnetometerSimple; slow rotations in all directions, away from iron)")
+    sp.add_argument("--thorough", action="store_true", help="with --reference: qmt's full searches as BROAD was "
+                    "made (24 mountings: an IMU at any angle to the markers; many minutes); default: one start each, "
+                    "seconds")
+    sp.add_argument("--no-plot", dest="plot", action="store_false", help="no residual plot")
+    sp.set_defaults(func=Run("import", "togglecf.cli.importer:cmd_import"))
+    return sp
 
 
 def add_train_parser(subparsers):
@@ -218,7 +250,7 @@ def add_stream_parser(subparsers):
     sp.add_argument("--units", default="gyr=rad/s,acc=m/s2,mag=uT",
                     help="input units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; acc: m/s2|g|mg; "
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
-    sp.add_argument("--time-unit", choices=LazyChoices("togglecf.live.stream", "TIME_UNITS", sort=True),
+    sp.add_argument("--time-unit", choices=LazyChoices("togglecf.core.units", "TIME_UNITS", sort=True),
                     metavar="UNIT", default="s", help="unit of the timestamp t: one of %(choices)s")
     # required: every time constant is converted at this rate, and a wrong guess (BROAD's 285.714 Hz for a
     # 100-Hz sensor) silently scales them all

@@ -16,6 +16,9 @@ stores the trees as ``inloop_forest.json``, read without XGBoost). The rest are 
 * ``plot``: ``data`` + matplotlib (``togglecf plot``, the study's figures);
 * ``stream``: pyserial (``togglecf stream --port``; ``--input`` needs nothing);
 * ``dask``: dask.distributed (``--backend dask``);
+* ``import``: qmt, the BROAD authors' toolbox (``togglecf import --reference``: clock synchronisation,
+  IMU-to-marker and reference-frame alignment, magnetometer calibration; an import without a
+  reference needs nothing);
 * ``all``: every extra.
 
 An optional module is imported where it is used, through ``require`` (or bound at module level with
@@ -38,6 +41,7 @@ EXTRAS = {
     "plot": ("pandas", "matplotlib"),
     "stream": ("serial",),
     "dask": ("dask", "distributed"),
+    "import": ("qmt",),
 }
 
 

@@ -8,7 +8,8 @@ and ``sampling_rate`` [Hz]; ``trials.json`` lists the 39 trials and 16 groups.
 Any directory in this layout works (``trials.json`` + one file per trial). Evaluation needs only
 ``imu_gyr``, ``imu_acc``, ``imu_mag``, ``opt_quat``, ``movement`` and ``sampling_rate``;
 ``opt_pos`` is optional (``Trial.opt_pos`` is ``None`` without it): training's labels use it when
-present (``togglecf.learn.labels``).
+present (``togglecf.learn.labels``). ``imu_time`` (optional, not in BROAD) holds each sample's time stamp [s]
+for a recording with an uneven clock (``togglecf import``); ``Trial.time`` is ``None`` without it.
 
 Several directories at once: ``open_index([A, B])`` (or ``DatasetIndex.from_dirs``) gives a
 ``MultiIndex`` with the same interface, whose trial names carry their dataset
@@ -32,7 +33,7 @@ __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
     "resolve_data_dir", "BROAD_URL", "GRAVITY", "MAX_INVALID_FRACTION", "MIN_DURATION_S", "min_samples",
     "check_evaluable", "MultiIndex", "open_index", "resolve_data_dirs", "trial_fields", "REQUIRED_FIELDS",
-    "OPTIONAL_FIELDS", "short_trial_name", "copy_hdf5_trial",
+    "OPTIONAL_FIELDS", "short_trial_name", "copy_hdf5_trial", "write_broad_hdf5", "checked_time_stamps",
 ]
 
 GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
@@ -91,6 +92,9 @@ class Trial:
         movement: ``(N,)`` bool, the samples errors are scored on.
         groups: BROAD group names of this trial.
         source: file it was read from, if any.
+        time: ``(N,)`` time stamp of each sample [s], strictly increasing, for a recording whose
+            samples are not evenly spaced (``imu_time``, written by ``togglecf import``); ``None``
+            when the samples are ``1/fs`` apart (BROAD). ``fs`` is then the nominal (median) rate.
     """
 
     name: str
@@ -104,6 +108,7 @@ class Trial:
     groups: tuple[str, ...] = ()
     source: Path | None = None
     check_units: bool = field(default=True, repr=False)
+    time: np.ndarray | None = field(default=None, repr=False)
     #: non-finite (NaN/inf) samples per IMU field: ``{"gyr": k, "acc": k, "mag": k}`` (set on construction)
     invalid: dict = field(init=False, repr=False, compare=False)
 
@@ -136,6 +141,8 @@ class Trial:
             mov = mov.astype(bool)
         object.__setattr__(self, "movement", mov)
         object.__setattr__(self, "groups", tuple(self.groups))
+        if self.time is not None:
+            object.__setattr__(self, "time", _checked_time(src, self.time, n))
         invalid = {}
         for name in ("gyr", "acc", "mag"):
             bad = ~np.all(np.isfinite(getattr(self, name)), axis=1)
@@ -200,7 +207,31 @@ class Trial:
         sl = np.s_[start:stop]
         return Trial(f"{self.name}[{start}:{stop}]", self.fs, self.gyr[sl], self.acc[sl], self.mag[sl],
                      self.opt_quat[sl], None if self.opt_pos is None else self.opt_pos[sl], self.movement[sl],
-                     self.groups, self.source, check_units=False)
+                     self.groups, self.source, check_units=False, time=None if self.time is None else self.time[sl])
+
+
+def _checked_time(src, time, n: int) -> np.ndarray:
+    """``time`` as float64 ``(n,)``, finite and strictly increasing; else ``DataError`` on ``imu_time``."""
+    t = np.asarray(time, dtype=np.float64)
+    if t.ndim == 2 and 1 in t.shape:  # MATLAB's column vector
+        t = t.reshape(-1)
+    if t.shape != (n,):
+        raise DataError(src, "imu_time", f"expected shape ({n},), got {t.shape}")
+    return checked_time_stamps(src, "imu_time", t)
+
+
+def checked_time_stamps(src, field_name: str, t, unit: str = "s", to_seconds: float = 1.0) -> np.ndarray:
+    """Time stamps ``t (N,)`` in ``unit`` as float64 seconds (times ``to_seconds``); ``DataError`` on
+    ``field_name`` of ``src`` naming the first row that is not finite or does not increase."""
+    t = np.asarray(t, dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise DataError(src, field_name, f"row {int(np.argmin(np.isfinite(t)))} has no time stamp (not finite)")
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        raise DataError(src, field_name, f"time stamps must increase: row {k} ({t[k]:.10g} {unit}) follows "
+                                         f"{t[k - 1]:.10g} {unit}")
+    return t * to_seconds
 
 
 # ------------------------------------------------------------------------------------------ loading
@@ -241,7 +272,7 @@ def load_trial(path, groups=(), check_units: bool = True, name: str | None = Non
                         "needed to evaluate a filter")
     return Trial(name=name or path.stem, fs=fs, gyr=fields["imu_gyr"], acc=fields["imu_acc"], mag=fields["imu_mag"],
                  opt_quat=fields["opt_quat"], opt_pos=fields.get("opt_pos"), movement=fields["movement"],
-                 groups=tuple(groups), source=path, check_units=check_units)
+                 groups=tuple(groups), source=path, check_units=check_units, time=fields.get("imu_time"))
 
 
 def check_evaluable(trial: Trial) -> Trial:
@@ -262,8 +293,9 @@ def check_evaluable(trial: Trial) -> Trial:
 
 #: what every trial file must hold (besides ``sampling_rate``): all that evaluation needs
 REQUIRED_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement")
-#: read when present: ``opt_pos`` (training's labels use it, ``togglecf.learn.labels``)
-OPTIONAL_FIELDS = ("opt_pos",)
+#: read when present: ``opt_pos`` (training's labels use it, ``togglecf.learn.labels``) and ``imu_time``
+#: (each sample's time stamp [s], ``Trial.time``)
+OPTIONAL_FIELDS = ("opt_pos", "imu_time")
 _REQUIRED = REQUIRED_FIELDS
 
 
@@ -301,6 +333,24 @@ def copy_hdf5_trial(src, dest, drop=()) -> Path:
         for k, v in fi.attrs.items():
             fo.attrs[k] = v
     return dest
+
+
+def write_broad_hdf5(path, trial: Trial, info: str) -> None:
+    """Write ``trial`` as one HDF5 file in BROAD's layout: the datasets ``imu_gyr``, ``imu_acc``,
+    ``imu_mag``, ``opt_quat``, ``opt_pos`` (float64; left out when ``trial.opt_pos`` is ``None``),
+    ``movement`` (bool) and, when ``trial.time`` is set, ``imu_time`` [s], gzip-compressed, and the file
+    attributes ``sampling_rate`` [Hz] and ``info`` (say where the data come from). No HDF5 timestamps:
+    the same trial gives the same bytes."""
+    h5py = _h5py()
+    fields = {"imu_gyr": trial.gyr, "imu_acc": trial.acc, "imu_mag": trial.mag, "opt_quat": trial.opt_quat,
+              "opt_pos": trial.opt_pos, "movement": np.asarray(trial.movement, bool), "imu_time": trial.time}
+    with h5py.File(path, "w", track_order=True) as f:
+        f.attrs["sampling_rate"] = float(trial.fs)
+        f.attrs["info"] = info
+        for k, v in fields.items():
+            if v is not None:
+                f.create_dataset(k, data=v, dtype=bool if k == "movement" else np.float64, compression="gzip",
+                                 compression_opts=9, track_times=False)
 
 
 def _read_hdf5(path: Path):

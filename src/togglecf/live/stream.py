@@ -28,13 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from togglecf.core import quaternion as quat
-
-GRAVITY = 9.80665
-#: unit name -> factor to SI (rad/s, m/s², µT)
-GYR_UNITS = {"rad/s": 1.0, "rads": 1.0, "dps": math.pi / 180.0, "deg/s": math.pi / 180.0}
-ACC_UNITS = {"m/s2": 1.0, "ms2": 1.0, "g": GRAVITY, "mg": GRAVITY / 1000.0}
-MAG_UNITS = {"uT": 1.0, "ut": 1.0, "nT": 1e-3, "nt": 1e-3, "G": 100.0, "gauss": 100.0, "mG": 0.1, "mg": 0.1}
-TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+from togglecf.core.units import TIME_UNITS, parse_units
 
 #: markers a chunk source yields after opening a port (CONNECTED) and after reopening it
 #: (RECONNECT): the partial line in the buffer is dropped and the input is resynchronised by
@@ -44,23 +38,6 @@ RECONNECT = object()
 
 PROBLEMS = ("garbage", "non_numeric", "non_finite", "wrong_field_count", "overlong_line", "dropped_samples",
             "time_reset", "reconnects", "partial_line_dropped")
-
-
-def parse_units(spec: str | None) -> tuple[float, float, float]:
-    """``"gyr=dps,acc=g,mag=uT"`` (any subset) -> SI factors (gyr, acc, mag)."""
-    tables = {"gyr": GYR_UNITS, "acc": ACC_UNITS, "mag": MAG_UNITS}
-    chosen = {"gyr": "rad/s", "acc": "m/s2", "mag": "uT"}
-    for item in (spec or "").split(","):
-        if not item.strip():
-            continue
-        key, _, val = item.partition("=")
-        key, val = key.strip(), val.strip()
-        if key not in tables:
-            raise ValueError(f"--units: unknown quantity {key!r} (gyr, acc, mag)")
-        if val not in tables[key]:
-            raise ValueError(f"--units: unknown unit {val!r} for {key} (one of {', '.join(tables[key])})")
-        chosen[key] = val
-    return tuple(tables[k][chosen[k]] for k in ("gyr", "acc", "mag"))
 
 
 @dataclass

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from togglecf.data.broad import Trial
-from togglecf.filters import FilterOutput
+from togglecf.filters import FilterOutput, dt_from_timestamps
 from togglecf.metrics.broad import trial_errors
 from togglecf.registry import FilterSpec
 
@@ -52,11 +52,14 @@ def warm_up(spec: FilterSpec, fs: float = _COMPILE_FS):
 
 
 def run_filter(trial: Trial, spec: FilterSpec) -> tuple[FilterOutput, float]:
-    """Run a freshly built filter over a whole trial. Returns ``(FilterOutput, µs per sample)``."""
+    """Run a freshly built filter over a whole trial, with the per-sample Δt of its time stamps when it
+    has them (``Trial.time``, an imported log), else at its nominal rate. Returns ``(FilterOutput, µs
+    per sample)``."""
     f = spec.build(trial.fs)
     warm_up(spec, trial.fs)
+    dt = None if trial.time is None else dt_from_timestamps(trial.time)
     t0 = time.perf_counter()
-    out = f.update_batch(trial.gyr, trial.acc, trial.mag if spec.use_mag else None)
+    out = f.update_batch(trial.gyr, trial.acc, trial.mag if spec.use_mag else None, dt=dt)
     return out, 1e6 * (time.perf_counter() - t0) / trial.n_samples
 
 

@@ -25,6 +25,57 @@ def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
     assert pd.read_csv(out / "per_group.csv", index_col=0).loc["all_trials", "n_trials"] == 2
 
 
+def test_evaluate_several_filters_in_one_table(tmp_path, capsys):
+    """``--filters``: one table, a row per filter, and each filter's files under --out as --filter writes them."""
+    pytest.importorskip("vqf")
+    data = make_broad_dir(tmp_path / "b", ["01_a", "02_b"], ["01_a", "02_b"])
+    out = tmp_path / "report"
+    assert main(["evaluate", "--filters", "cf,vqf,madgwick", "--data", str(data), "--out", str(out),
+                 "--jobs", "1"]) == 0
+    printed = capsys.readouterr().out
+    lines = printed.splitlines()
+    rows = lines[lines.index(next(ln for ln in lines if ln.split() == ["filter"])) + 1:]
+    assert [ln.split()[0] for ln in rows] == ["cf", "vqf", "madgwick"]  # one table, the filters in order
+    assert "per trial" not in printed  # not three single-filter reports
+    summary = pd.read_csv(out / "summary.csv", index_col=0)
+    assert list(summary.index) == ["cf", "vqf", "madgwick"]
+    assert {"n_trials", "total", "heading", "inclination", "us_per_sample", "all_trials", "g1"} <= set(summary.columns)
+    for name in summary.index:
+        per_trial = pd.read_csv(out / name / "per_trial.csv", index_col=0)
+        assert list(per_trial.index) == ["01_a", "02_b"]
+        assert summary.loc[name, "total"] == pytest.approx(per_trial["total"].mean(), abs=1e-6)
+        assert summary.loc[name, "g1"] == pytest.approx(per_trial.loc["01_a", "total"], abs=1e-6)  # g1: 01_a only
+        assert json.loads((out / name / "results.json").read_text())["filter"] == name
+    assert summary.loc["vqf", "total"] != summary.loc["madgwick", "total"]
+    # the same filter alone gives the same numbers
+    assert main(["evaluate", "--filter", "madgwick", "--data", str(data), "--out", str(tmp_path / "one"),
+                 "--jobs", "1"]) == 0
+    one = pd.read_csv(tmp_path / "one" / "per_trial.csv", index_col=0)
+    assert one["total"].mean() == pytest.approx(summary.loc["madgwick", "total"], abs=1e-6)
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--filters", "cf,nope"], "unknown filter 'nope' in --filters"),
+    (["--filters", "cf,cf"], "--filters names cf twice"),
+    (["--filters", "cf,toggling"], "--filters toggling needs --models DIR"),
+    (["--filters", "cf,madgwick", "--models", "m"], "--models DIR is for toggling / vqf_toggling"),
+    (["--filters", "cf,madgwick", "--param", "tau=0.3"], "--param sets one filter's settings"),
+    (["--filters", "learned_vqf", "--models", "m"], "--models DIR is for toggling / vqf_toggling"),
+])
+def test_evaluate_filters_refusals_are_one_line(argv, message, tmp_path, capsys):
+    data = make_broad_dir(tmp_path / "b", ["01_a"], ["01_a"])
+    assert main(["evaluate", *argv, "--data", str(data), "--jobs", "1"]) == 1
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("togglecf evaluate: error: ")
+
+
+def test_evaluate_filter_and_filters_are_exclusive(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--filter", "cf", "--filters", "cf,madgwick"])
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
 def test_errors_are_one_clear_line(tmp_path, capsys):
     assert main(["evaluate", "--filter", "cf", "--data", str(tmp_path)]) == 1
     err = capsys.readouterr().err

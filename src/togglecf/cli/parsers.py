@@ -97,16 +97,24 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_args(sp)
     sp.set_defaults(func=Run("trials", "togglecf.cli.data:cmd_trials"))
 
-    sp = sub.add_parser("evaluate", help="run a filter on BROAD trials and print BROAD's error table")
+    sp = sub.add_parser("evaluate", help="run a filter (or several) on BROAD trials and print BROAD's error table")
     add_data_args(sp)
-    sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
-                    help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF the package ships)")
+    which = sp.add_mutually_exclusive_group()
+    which.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
+                       help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF the package "
+                       "ships; vqf: the reference VQF, the [vqf] extra)")
+    names_in_help(which.add_argument(
+        "--filters", metavar="LIST", help="several filters in one run, comma-separated, e.g. "
+        "learned_vqf,vqf,madgwick: one table, a row per filter (mean total/heading/inclination RMSE, per-group "
+        "totals); each at its defaults (no --param); toggling / vqf_toggling take --models; any of %(names)s"),
+        FILTER_CHOICES)
     sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="filter setting, repeatable (default: the filter's documented defaults)")
+                    help="setting of the --filter, repeatable (default: the filter's documented defaults)")
     sp.add_argument("--models", metavar="DIR", help="toggling / vqf_toggling: a `togglecf train` model directory "
                     "(models + learned gains)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
-    sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
+    sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here "
+                    "(--filters: those of each filter in DIR/<filter>/, the table in DIR/summary.csv)")
     sp.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
     sweep_args(sp)
     sp.set_defaults(func=Run("evaluate", "togglecf.cli.evaluate:cmd_evaluate", extras=("data",)))

@@ -260,6 +260,10 @@ def add_stream_parser(subparsers):
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
     sp.add_argument("--time-unit", choices=LazyChoices("togglecf.core.units", "TIME_UNITS", sort=True),
                     metavar="UNIT", default="s", help="unit of the timestamp t: one of %(choices)s")
+    sp.add_argument("--unit-check", type=float, default=2.0, metavar="SECONDS",
+                    help="check the units on the first SECONDS of samples (held back, then filtered): a field "
+                    "another unit explains (gyr in °/s, acc in g or mg, mag in gauss, mT or nT) stops the stream "
+                    "with one line naming the --units that fixes it; 0: no check")
     # required: every time constant is converted at this rate, and a wrong guess (BROAD's 285.714 Hz for a
     # 100-Hz sensor) silently scales them all
     sp.add_argument("--fs", type=float, required=True,

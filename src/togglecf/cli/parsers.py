@@ -7,10 +7,12 @@ argument is checked or the command's ``--help`` lists them (``LazyChoices``)."""
 from __future__ import annotations
 
 import argparse
+from contextlib import nullcontext
 from importlib import import_module
 
 from togglecf import __version__
 from togglecf.cli.common import DATA_HELP, add_backend_args, add_data_args
+from togglecf.cli.library_noise import library_noise_filtered
 from togglecf.core.config import config_path
 from togglecf.core.extras import check_extra
 from togglecf.data.broad import SELECTION_HELP
@@ -25,16 +27,19 @@ DESCRIPTION = ("togglecf: orientation filters on BROAD (evaluate, tune), the lea
 class Run:
     """``args.func`` of a subcommand: ``Run("train", "togglecf.cli.train:cmd_train", extras=("train",))``
     imports ``togglecf.cli.train`` only when called, after ``check_extra`` of each extra (a missing one:
-    ``MissingExtraError``, one line naming it, before any work)."""
+    ``MissingExtraError``, one line naming it, before any work). ``quiet_libraries``: the tree libraries'
+    version and deprecation chatter is dropped while it runs (``cli.library_noise``)."""
 
-    def __init__(self, command: str, target: str, extras: tuple = ()):
+    def __init__(self, command: str, target: str, extras: tuple = (), quiet_libraries: bool = False):
         self.command, self.target, self.extras = command, target, tuple(extras)
+        self.quiet_libraries = quiet_libraries
 
     def __call__(self, args):
         for extra in self.extras:
             check_extra(extra, what=f"togglecf {self.command}")
         module, _, name = self.target.partition(":")
-        return getattr(import_module(module), name)(args)
+        with library_noise_filtered() if self.quiet_libraries else nullcontext():
+            return getattr(import_module(module), name)(args)
 
     def __repr__(self):
         return f"Run({self.command!r}, {self.target!r}, extras={self.extras!r})"
@@ -320,7 +325,7 @@ def add_export_parser(subparsers):
                     "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")
     sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
     add_sweep_arguments(sp)
-    sp.set_defaults(func=Run("export", "togglecf.cli.export:cmd_export", extras=("export",)))
+    sp.set_defaults(func=Run("export", "togglecf.cli.export:cmd_export", extras=("export",), quiet_libraries=True))
     return sp
 
 
@@ -340,5 +345,6 @@ def add_prune_parser(subparsers):
                     help="data directory, repeatable (default: the directories the models were trained on when "
                     "they were several, else the default location)")
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
-    sp.set_defaults(func=Run("prune", "togglecf.cli.prune:cmd_prune", extras=("export", "plot")))
+    sp.set_defaults(func=Run("prune", "togglecf.cli.prune:cmd_prune", extras=("export", "plot"),
+                             quiet_libraries=True))
     return sp

@@ -1,11 +1,16 @@
 """The `togglecf` command line on real and on synthetic data."""
 import json
+import os
+import re
+import sys
+import warnings
 
 import pandas as pd
 import pytest
 
 from conftest import TINY_TRAIN_TOML
 from test_data import make_broad_dir, synthetic_fields, write_hdf5
+from togglecf.cli.library_noise import library_noise_filtered
 from togglecf.cli.main import main
 
 
@@ -23,6 +28,57 @@ def test_evaluate_on_synthetic_dir_writes_tables(tmp_path, capsys):
     res = json.loads((out / "results.json").read_text())
     assert res["params"] == {"tau": 0.3482} and res["missing_trials"] == ["03_c"]
     assert pd.read_csv(out / "per_group.csv", index_col=0).loc["all_trials", "n_trials"] == 2
+
+
+def test_evaluate_several_filters_in_one_table(tmp_path, capsys):
+    """``--filters``: one table, a row per filter, and each filter's files under --out as --filter writes them."""
+    pytest.importorskip("vqf")
+    data = make_broad_dir(tmp_path / "b", ["01_a", "02_b"], ["01_a", "02_b"])
+    out = tmp_path / "report"
+    assert main(["evaluate", "--filters", "cf,vqf,madgwick", "--data", str(data), "--out", str(out),
+                 "--jobs", "1"]) == 0
+    printed = capsys.readouterr().out
+    lines = printed.splitlines()
+    rows = lines[lines.index(next(ln for ln in lines if ln.split() == ["filter"])) + 1:]
+    assert [ln.split()[0] for ln in rows] == ["cf", "vqf", "madgwick"]  # one table, the filters in order
+    assert "per trial" not in printed  # not three single-filter reports
+    summary = pd.read_csv(out / "summary.csv", index_col=0)
+    assert list(summary.index) == ["cf", "vqf", "madgwick"]
+    assert {"n_trials", "total", "heading", "inclination", "us_per_sample", "all_trials", "g1"} <= set(summary.columns)
+    for name in summary.index:
+        per_trial = pd.read_csv(out / name / "per_trial.csv", index_col=0)
+        assert list(per_trial.index) == ["01_a", "02_b"]
+        assert summary.loc[name, "total"] == pytest.approx(per_trial["total"].mean(), abs=1e-6)
+        assert summary.loc[name, "g1"] == pytest.approx(per_trial.loc["01_a", "total"], abs=1e-6)  # g1: 01_a only
+        assert json.loads((out / name / "results.json").read_text())["filter"] == name
+    assert summary.loc["vqf", "total"] != summary.loc["madgwick", "total"]
+    # the same filter alone gives the same numbers
+    assert main(["evaluate", "--filter", "madgwick", "--data", str(data), "--out", str(tmp_path / "one"),
+                 "--jobs", "1"]) == 0
+    one = pd.read_csv(tmp_path / "one" / "per_trial.csv", index_col=0)
+    assert one["total"].mean() == pytest.approx(summary.loc["madgwick", "total"], abs=1e-6)
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--filters", "cf,nope"], "unknown filter 'nope' in --filters"),
+    (["--filters", "cf,cf"], "--filters names cf twice"),
+    (["--filters", "cf,toggling"], "--filters toggling needs --models DIR"),
+    (["--filters", "cf,madgwick", "--models", "m"], "--models DIR is for toggling / vqf_toggling"),
+    (["--filters", "cf,madgwick", "--param", "tau=0.3"], "--param sets one filter's settings"),
+    (["--filters", "learned_vqf", "--models", "m"], "--models DIR is for toggling / vqf_toggling"),
+])
+def test_evaluate_filters_refusals_are_one_line(argv, message, tmp_path, capsys):
+    data = make_broad_dir(tmp_path / "b", ["01_a"], ["01_a"])
+    assert main(["evaluate", *argv, "--data", str(data), "--jobs", "1"]) == 1
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("togglecf evaluate: error: ")
+
+
+def test_evaluate_filter_and_filters_are_exclusive(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--filter", "cf", "--filters", "cf,madgwick"])
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 def test_errors_are_one_clear_line(tmp_path, capsys):
@@ -139,3 +195,45 @@ def test_train_then_evaluate_toggling_on_unseen_trial(broad_index, tmp_path, cap
         assert len(warned) == 1 and "1 of the 1 trials" in warned[0] and "24_disturbed_tapping_A" in warned[0]
     assert main(["evaluate", "--filter", "toggling", "--param", "tau_acc=0.1", "--models", str(models), *data]) == 1
     assert "takes no --param" in capsys.readouterr().err
+
+
+def test_library_noise_is_dropped_and_the_rest_kept(capfd):
+    """Native log lines and version/deprecation warnings of the tree libraries are dropped from stdout,
+    stderr (file descriptor 2: native code) and Python warnings; other lines, errors included, pass."""
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")  # every warning shown, but for those of the libraries
+        with library_noise_filtered():
+            _write_library_noise_and_real_lines()
+    out, err = capfd.readouterr()
+    assert out == "tl2cgen: object size\n"
+    assert set(err.splitlines()) == {"[15:12:44] /src/c_api.cc:12: error: cannot open model", "equivalence check",
+                                     "a real stderr line"}
+    assert [str(w.message) for w in shown] == ["a real warning"]
+
+
+def _write_library_noise_and_real_lines():
+    os.write(2, b"[15:12:43] /tmp/x/libbuild/_deps/treelite-src/src/serializer.cc:202: The model you are loading "
+                b"originated from a newer Treelite version; some functionalities may be unavailable.\n"
+                b"Currently running Treelite version 4.1.2\nThe model checkpoint was generated from Treelite "
+                b"version 4.8.1\n[15:12:44] /src/c_api.cc:12: error: cannot open model\nequivalence check\n")
+    print("[15:12:43] /project/src/compiler/ast/split.cc:30: Parallel compilation disabled; all member trees")
+    print("tl2cgen: object size")
+    warnings.warn_explicit("treelite version 4.8.1 > 4.1.2", UserWarning, "core.py", 1, module="treelite.core")
+    warnings.warn_explicit("[15:12:45] WARNING: /ws/src/learner.cc:740: deprecated parameter", UserWarning,
+                           "x.py", 1, module="togglecf.embedded.forest_export")
+    warnings.warn_explicit("a real warning", UserWarning, "x.py", 1, module="togglecf.embedded.forest_export")
+    print("a real stderr line", file=sys.stderr)
+
+
+@pytest.mark.slow
+def test_export_prints_no_library_version_warnings(tiny_model_dir, mini_index, tmp_path, capfd):
+    """`togglecf export` of a tiny model: its log is the command's own lines, no tree-library chatter
+    (TL2cgen's embedded Treelite warns three lines per checkpoint of a newer Treelite)."""
+    pytest.importorskip("tl2cgen")
+    assert main(["export", "--models", str(tiny_model_dir), "--out", str(tmp_path / "emb"), "--format", "tl2cgen",
+                 "--data", str(mini_index.root), "--trials", "24", "--no-riscv"]) == 0
+    out, err = capfd.readouterr()
+    assert "equivalence (≤ 1e-05)" in out and "OK" in out
+    noise = [ln for ln in (out + err).splitlines()
+             if re.search(r"Treelite version|deprecat|Parallel compilation|Warning:|\.cc:\d+:", ln, re.IGNORECASE)]
+    assert noise == []

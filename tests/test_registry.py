@@ -2,13 +2,18 @@
 included, validated without a sampling rate; compiled models cached by content."""
 import json
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from togglecf.filters import FILTERS, MadgwickFilter
 from togglecf.core.io import file_sha256
-from togglecf.registry import FILTER_NAMES, LEARNED_VQF, TOGGLING, TRAINED, FilterSpec, filter_spec
+from togglecf.core.extras import MissingExtraError, missing_extra_message
+from togglecf import simulate as sim
+from togglecf.registry import (FILTER_NAMES, LEARNED_VQF, REFERENCE_VQF, TOGGLING, TRAINED, FilterSpec, ReferenceVQF,
+                               filter_spec)
 from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
@@ -16,7 +21,7 @@ from togglecf.toggling import load_toggling_filter, model_dir_digest
 
 
 def test_names_cover_classic_filters_and_toggling():
-    assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) | {LEARNED_VQF} and TOGGLING in TRAINED
+    assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) | {LEARNED_VQF, REFERENCE_VQF} and TOGGLING in TRAINED
 
 
 def test_the_pretrained_filter_needs_no_models_and_takes_none():
@@ -89,3 +94,41 @@ def test_retrained_directory_is_not_served_from_the_cache(mini_index, mini_names
     t = mini_index.load(mini_names[1])  # 07
     q = second.update_batch(t.gyr, t.acc, t.mag).quat
     assert np.all(np.isfinite(q))
+
+
+@pytest.mark.parametrize("use_mag", [True, False])
+def test_vqf_is_the_reference_package_at_its_defaults(use_mag):
+    """``vqf``: the package's ``VQF(1/fs).updateBatch`` as the study runs it, sample by sample the same."""
+    vqf = pytest.importorskip("vqf")
+    fs = 100.0
+    trial = sim.imu_from_orientation(sim.gimbal_trajectory(fs, 3.0), fs)
+    spec = FilterSpec(REFERENCE_VQF, use_mag=use_mag)
+    f = spec.build(fs)
+    assert isinstance(f, ReferenceVQF) and f.fs == fs
+    out = f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None)
+    ref = vqf.VQF(1.0 / fs).updateBatch(trial.gyr, trial.acc, trial.mag if use_mag else None)
+    np.testing.assert_array_equal(out.quat, ref["quat9D" if use_mag else "quat6D"])
+    g = spec.build(fs)
+    q = [g.update(trial.gyr[i], trial.acc[i], trial.mag[i] if use_mag else None, dt=1.01 / fs) for i in range(50)]
+    np.testing.assert_allclose(q, out.quat[:50], atol=1e-12)
+    assert spec.settings.params["tauAcc"] == vqf.VQF(0.01).params["tauAcc"] and "at its defaults" in str(spec.settings)
+    assert spec.identity().startswith("vqf ")  # journaled results follow the package version
+    for kw in ({"params": {"tauAcc": 1.0}}, {"models": "somewhere"}):
+        with pytest.raises(ValueError, match="reference VQF at its defaults"):
+            FilterSpec(REFERENCE_VQF, **kw)
+    with pytest.raises(ValueError, match="fixed sampling time"):  # an irregular log: not run at a wrong rate
+        f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None, dt=np.full(trial.n_samples, 2 / fs))
+
+
+def test_vqf_without_the_package_is_one_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "vqf", None)  # as if it were not installed
+    with pytest.raises(MissingExtraError) as exc:
+        FilterSpec(REFERENCE_VQF)
+    assert str(exc.value) == missing_extra_message("vqf", "the vqf filter (the reference VQF, dlaidig/vqf)")
+    assert str(exc.value).endswith("pip install 'togglecf[vqf]'")
+
+
+def test_the_registry_does_not_import_vqf():
+    code = "import sys, togglecf.registry; print('vqf' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0 and res.stdout.strip() == "False", res.stderr[-2000:]

@@ -11,8 +11,9 @@ import pytest
 
 from togglecf import simulate as sim
 from togglecf.filters import make_filter
-from togglecf.live.stream import (RECONNECT, StreamConfig, StreamProcessor, file_chunks, parse_units,
-                             serial_chunks)
+from togglecf.cli.main import main
+from togglecf.live.stream import (RECONNECT, StreamConfig, StreamProcessor, UnitError, file_chunks, parse_units,
+                                  serial_chunks)
 
 serial = pytest.importorskip("serial")
 
@@ -262,3 +263,67 @@ def test_cli_stream_from_file_and_stdin(tmp_path, capsys, monkeypatch):
     with pytest.raises(SystemExit):
         _cli(["stream", "--input", str(path)])
     assert "--fs" in capsys.readouterr().err
+
+
+def _lines(trial, gyr_scale=1.0, acc_scale=1.0, mag_scale=1.0):
+    """The trial as stream lines in seconds, each field multiplied by its scale (a sensor in other units)."""
+    rows = np.column_stack([np.arange(trial.n_samples) / FS, trial.gyr * gyr_scale, trial.acc * acc_scale,
+                            trial.mag * mag_scale])
+    return b"".join(",".join(repr(float(x)) for x in r).encode() + b"\n" for r in rows)
+
+
+@pytest.mark.parametrize("scales,units,field,fix", [
+    ({"gyr_scale": 180 / np.pi}, None, "gyr", "gyr=dps"),
+    ({"acc_scale": 1 / 9.80665}, None, "acc", "acc=g"),
+    ({"acc_scale": 1000 / 9.80665}, "gyr=rad/s", "acc", "gyr=rad/s,acc=mg"),
+    ({"mag_scale": 0.01}, "gyr=rad/s,mag=uT", "mag", "gyr=rad/s,mag=gauss"),
+    ({"mag_scale": 0.001}, None, "mag", "mag=mT"),
+    ({"mag_scale": 1000.0}, None, "mag", "mag=nT"),
+], ids=["gyr_dps", "acc_g", "acc_mg", "mag_gauss", "mag_mT", "mag_nT"])
+def test_a_field_in_another_unit_stops_the_stream_before_any_output(scales, units, field, fix):
+    """The first seconds of samples are checked with the trial loader's check (``core.units.unit_mismatch``):
+    one line naming the field, the statistic seen and the ``--units`` that fixes it; nothing filtered before.
+    With that ``--units`` the same lines run."""
+    trial = _signals(1500, seed=11)
+    data = _lines(trial, **scales)
+    out = io.StringIO()
+    proc = StreamProcessor(make_filter("madgwick", FS), StreamConfig(fs=FS, units=units), out=out, err=io.StringIO())
+    with pytest.raises(UnitError) as exc:
+        proc.run([data])
+    msg = str(exc.value)
+    assert "\n" not in msg and f"field '{field}' over the first 571 samples" in msg  # 2 s at 285.714 Hz
+    assert f"rerun with --units {fix} " in msg
+    assert out.getvalue() == "" and proc.n_samples == 0
+    proc = StreamProcessor(make_filter("madgwick", FS), StreamConfig(fs=FS, units=fix, record=True), out=io.StringIO(),
+                           err=io.StringIO())
+    proc.run([data])
+    assert proc.n_samples == trial.n_samples
+    batch = make_filter("madgwick", FS).update_batch(trial.gyr, trial.acc, trial.mag).quat
+    np.testing.assert_allclose(proc.records["quat"], batch, atol=1e-9)  # the held samples filtered as the rest
+
+
+def test_vigorous_motion_a_short_stream_and_no_check_are_accepted():
+    trial = _signals(1500, seed=12)
+    # a phone in a running hand: median |acc| 20-24 m/s²; no other unit explains it
+    running = _lines(trial, acc_scale=2.3)
+    proc = StreamProcessor(make_filter("madgwick", FS), StreamConfig(fs=FS, rate=0), out=io.StringIO(), err=io.StringIO())
+    proc.run([running])
+    assert proc.n_samples == trial.n_samples and len(proc.out.getvalue().splitlines()) == trial.n_samples
+    # shorter than the check: checked at the end, then filtered
+    short = _lines(trial, acc_scale=1 / 9.80665).splitlines(keepends=True)[:100]
+    with pytest.raises(UnitError, match="field 'acc' over the first 100 samples: median"):
+        StreamProcessor(make_filter("madgwick", FS), StreamConfig(fs=FS), out=io.StringIO(),
+                        err=io.StringIO()).run([b"".join(short)])
+    proc = StreamProcessor(make_filter("madgwick", FS), StreamConfig(fs=FS, unit_check_s=0), out=io.StringIO(),
+                           err=io.StringIO())
+    proc.run([b"".join(short)])  # --unit-check 0: no check
+    assert proc.n_samples == 100
+
+
+def test_cli_stream_refuses_a_unit_in_one_line(tmp_path, capsys):
+    path = tmp_path / "imu.csv"
+    path.write_bytes(_lines(_signals(1500, seed=13), acc_scale=1 / 9.80665))
+    assert main(["stream", "--input", str(path), "--fs", str(FS), "--filter", "madgwick"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"togglecf stream: error: field 'acc' over the first 571 samples: median |acc| = 1: looks like g, "
+                   f"expected m/s²; rerun with --units gyr=rad/s,acc=g,mag=uT (--unit-check 0 skips this check)"]

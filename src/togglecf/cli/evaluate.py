@@ -11,6 +11,7 @@ import pandas as pd
 
 from togglecf import __version__
 from togglecf.cli.common import backend_from_args, backend_settings, data_index
+from togglecf.cli.filter_list import filter_names, filter_specs
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.data.broad import MAX_INVALID_FRACTION
 from togglecf.metrics.broad import METRICS, group_means
@@ -80,6 +81,7 @@ def _write(out, per_trial, per_group, meta):
 
 
 def _meta(args, index, names, **extra):
+    """results.json's header; ``extra`` (``filter=`` of one of several) overrides."""
     return {"togglecf_version": __version__, "filter": args.filter, "mode": "6D" if args.six_d else "9D",
             "data_dir": _data_dir_meta(index), "trials": names, "missing_trials": index.missing,
             "created_unix": time.time(), **extra}
@@ -94,31 +96,96 @@ def _data_dir_meta(index):
 def cmd_evaluate(args):
     index = data_index(args)
     names = index.select(args.trials)
-    params = _params(args.param)
-    # validated here (settings, or the model directory and its gains) before any worker starts
-    spec = FilterSpec(args.filter, params, models=args.models, use_mag=not args.six_d)
-    params, settings = spec.as_params(), spec.settings
-    if spec.models:
-        _warn_in_sample(training_trials_among(spec.models, {n: index.available[n] for n in names}), spec.models, names)
-    elif spec.name == LEARNED_VQF:
-        _warn_in_sample(trained_files_among(load_pretrained().metadata.get("data_files", {}),
-                                            {n: index.available[n] for n in names}), "the pretrained learned VQF", names)
+    specs = _evaluated_specs(args)  # validated (settings, model directories and gains) before any worker starts
+    for spec in specs:
+        _warn_if_trained_on(spec, index, names)
     with _sweep_context(args) as (backend, store, chunk):
-        sweep = run_sweep(index, names, args.filter, [params], use_mag=not args.six_d, backend=backend, store=store,
-                          chunk_size=chunk, on_error="report")
+        sweeps = [run_sweep(index, names, spec.name, [spec.as_params()], use_mag=spec.use_mag, backend=backend,
+                            store=store, chunk_size=chunk, on_error="report") for spec in specs]
+    if args.filters is None:
+        return _report_one(args, specs[0], sweeps[0], index, names)
+    return _report_several(args, specs, sweeps, index, names)
+
+
+def _evaluated_specs(args) -> list:
+    """``--filter NAME`` (with its ``--param``s) or the filters of ``--filters a,b,c`` (at their defaults)."""
+    if args.filters is None:
+        return [FilterSpec(args.filter, _params(args.param), models=args.models, use_mag=not args.six_d)]
+    if args.param:
+        raise ValueError("--param sets one filter's settings: give it with --filter NAME, not with --filters")
+    return filter_specs(filter_names(args.filters), args.models, use_mag=not args.six_d)
+
+
+def _warn_if_trained_on(spec, index, names) -> None:
+    """A learned filter scored on trials its models were trained on: one warning line."""
+    files = {n: index.available[n] for n in names}
+    if spec.models:
+        _warn_in_sample(training_trials_among(spec.models, files), spec.models, names)
+    elif spec.name == LEARNED_VQF:
+        _warn_in_sample(trained_files_among(load_pretrained().metadata.get("data_files", {}), files),
+                        "the pretrained learned VQF", names)
+
+
+def _report_one(args, spec, sweep, index, names) -> int:
+    """``--filter``: the per-trial and per-group tables and the mean line; with ``--out`` their files."""
     res = sweep.results[0]
     if not res:
         _print_failure_lines(sweep.failed, index)
         raise ValueError(f"no trial could be evaluated: all {len(names)} selected trial(s) failed (listed above)")
     _report_invalid(sweep.invalid, index)
     per_trial, per_group = _tables(res, index.groups, sweep.invalid)
-    _print_tables(f"{args.filter} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group,
+    settings = spec.settings
+    _print_tables(f"{spec.name} ({'6D' if args.six_d else '9D'}) {settings}", per_trial, per_group,
                   getattr(index, "datasets", ()))
     if args.out:
-        _write(args.out, per_trial, per_group, _meta(args, index, names, params=params, settings=repr(settings),
-                                                     failed_trials=sweep.failed, invalid_samples=sweep.invalid,
-                                                     max_invalid_fraction=MAX_INVALID_FRACTION))
+        _write(args.out, per_trial, per_group, _meta(args, index, names, params=spec.as_params(),
+                                                      settings=repr(settings), failed_trials=sweep.failed,
+                                                      invalid_samples=sweep.invalid,
+                                                      max_invalid_fraction=MAX_INVALID_FRACTION))
     return _report_failures(sweep.failed, [], index)
+
+
+def _report_several(args, specs, sweeps, index, names) -> int:
+    """``--filters``: one table, a row per filter (``_summary_row``); with ``--out`` each filter's files in
+    OUT/<filter>/ (as ``--filter`` writes them) and the table as OUT/summary.csv."""
+    rows = {}
+    for spec, sweep in zip(specs, sweeps):
+        if not sweep.results[0]:
+            print(f"{spec.name}: no trial could be evaluated (failures listed below)", file=sys.stderr)
+            continue
+        per_trial, per_group = _tables(sweep.results[0], index.groups, sweep.invalid)
+        rows[spec.name] = _summary_row(per_trial, per_group)
+        if args.out:
+            _write(Path(args.out) / spec.name, per_trial, per_group, _meta(
+                args, index, names, filter=spec.name, params=spec.as_params(), settings=str(spec.settings),
+                failed_trials=sweep.failed, invalid_samples=sweep.invalid, max_invalid_fraction=MAX_INVALID_FRACTION))
+    _report_invalid(sweeps[0].invalid, index)  # the same samples for every filter
+    if rows:
+        summary = pd.DataFrame.from_dict(rows, orient="index")
+        summary.index.name = "filter"
+        _print_summary(summary, args.six_d)
+        if args.out:
+            atomic_write_text(Path(args.out) / "summary.csv", summary.to_csv(float_format="%.6f"))
+            print(f"wrote {args.out}/summary.csv", file=sys.stderr)
+    codes = [_report_failures(sweep.failed, [], index, what=f"for {spec.name}") for spec, sweep in zip(specs, sweeps)]
+    if not rows:
+        raise ValueError(f"no trial could be evaluated by any of the {len(specs)} filters (listed above)")
+    return max(codes)
+
+
+def _summary_row(per_trial, per_group) -> dict:
+    """One filter's row of the ``--filters`` table: the means over its trials of BROAD's total, heading and
+    inclination RMSE [°], the median µs per sample, and each group's mean total RMSE [°]."""
+    row = {"n_trials": len(per_trial), **{m: per_trial[m].mean() for m in ("total", "heading", "inclination")},
+           "us_per_sample": per_trial["us_per_sample"].median()}
+    return row | {str(g): per_group.loc[g, "total"] for g in per_group.index}
+
+
+def _print_summary(summary, six_d: bool) -> None:
+    fmt = {c: "{:.3f}".format for c in summary.columns if c != "n_trials"}
+    print(f"\n{'6D' if six_d else '9D'}: mean RMSE [°] over each filter's trials (total, heading, inclination), "
+          "µs per sample (median), then each group's mean total RMSE [°]:")
+    print(summary.to_string(formatters=fmt))
 
 
 def _warn_in_sample(seen, what, names) -> None:
@@ -204,11 +271,13 @@ def _report_invalid(invalid: dict, index):
                   f"(a trial is refused above {MAX_INVALID_FRACTION:.0%} per field)", file=sys.stderr)
 
 
-def _report_failures(failed: dict, incomplete: list, index) -> int:
-    """Exit code 3 (after writing what was computed) when trials failed; one line per trial on stderr."""
+def _report_failures(failed: dict, incomplete: list, index, what: str = "") -> int:
+    """Exit code 3 (after writing what was computed) when trials failed; one line per trial on stderr
+    (``what``: of which filter, e.g. ``"for vqf"``)."""
     if not failed and not incomplete:
         return 0
-    print(f"\nWARNING: {len(failed)} trial(s) failed and are missing from the tables:", file=sys.stderr)
+    print(f"\nWARNING: {len(failed)} trial(s) failed{' ' + what if what else ''} and are missing from the tables:",
+          file=sys.stderr)
     _print_failure_lines(failed, index)
     for name in incomplete:
         if name not in failed:

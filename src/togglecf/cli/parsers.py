@@ -7,10 +7,12 @@ argument is checked or the command's ``--help`` lists them (``LazyChoices``)."""
 from __future__ import annotations
 
 import argparse
+from contextlib import nullcontext
 from importlib import import_module
 
 from togglecf import __version__
 from togglecf.cli.common import DATA_HELP, add_backend_args, add_data_args
+from togglecf.cli.library_noise import library_noise_filtered
 from togglecf.core.config import config_path
 from togglecf.core.extras import check_extra
 from togglecf.data.broad import SELECTION_HELP
@@ -25,16 +27,19 @@ DESCRIPTION = ("togglecf: orientation filters on BROAD (evaluate, tune), the lea
 class Run:
     """``args.func`` of a subcommand: ``Run("train", "togglecf.cli.train:cmd_train", extras=("train",))``
     imports ``togglecf.cli.train`` only when called, after ``check_extra`` of each extra (a missing one:
-    ``MissingExtraError``, one line naming it, before any work)."""
+    ``MissingExtraError``, one line naming it, before any work). ``quiet_libraries``: the tree libraries'
+    version and deprecation chatter is dropped while it runs (``cli.library_noise``)."""
 
-    def __init__(self, command: str, target: str, extras: tuple = ()):
+    def __init__(self, command: str, target: str, extras: tuple = (), quiet_libraries: bool = False):
         self.command, self.target, self.extras = command, target, tuple(extras)
+        self.quiet_libraries = quiet_libraries
 
     def __call__(self, args):
         for extra in self.extras:
             check_extra(extra, what=f"togglecf {self.command}")
         module, _, name = self.target.partition(":")
-        return getattr(import_module(module), name)(args)
+        with library_noise_filtered() if self.quiet_libraries else nullcontext():
+            return getattr(import_module(module), name)(args)
 
     def __repr__(self):
         return f"Run({self.command!r}, {self.target!r}, extras={self.extras!r})"
@@ -97,16 +102,24 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_args(sp)
     sp.set_defaults(func=Run("trials", "togglecf.cli.data:cmd_trials"))
 
-    sp = sub.add_parser("evaluate", help="run a filter on BROAD trials and print BROAD's error table")
+    sp = sub.add_parser("evaluate", help="run a filter (or several) on BROAD trials and print BROAD's error table")
     add_data_args(sp)
-    sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
-                    help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF the package ships)")
+    which = sp.add_mutually_exclusive_group()
+    which.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
+                       help="one of %(choices)s (default: learned_vqf, the pretrained learned VQF the package "
+                       "ships; vqf: the reference VQF, the [vqf] extra)")
+    names_in_help(which.add_argument(
+        "--filters", metavar="LIST", help="several filters in one run, comma-separated, e.g. "
+        "learned_vqf,vqf,madgwick: one table, a row per filter (mean total/heading/inclination RMSE, per-group "
+        "totals); each at its defaults (no --param); toggling / vqf_toggling take --models; any of %(names)s"),
+        FILTER_CHOICES)
     sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="filter setting, repeatable (default: the filter's documented defaults)")
+                    help="setting of the --filter, repeatable (default: the filter's documented defaults)")
     sp.add_argument("--models", metavar="DIR", help="toggling / vqf_toggling: a `togglecf train` model directory "
                     "(models + learned gains)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
-    sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here")
+    sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here "
+                    "(--filters: those of each filter in DIR/<filter>/, the table in DIR/summary.csv)")
     sp.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
     sweep_args(sp)
     sp.set_defaults(func=Run("evaluate", "togglecf.cli.evaluate:cmd_evaluate", extras=("data",)))
@@ -252,6 +265,10 @@ def add_stream_parser(subparsers):
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
     sp.add_argument("--time-unit", choices=LazyChoices("togglecf.core.units", "TIME_UNITS", sort=True),
                     metavar="UNIT", default="s", help="unit of the timestamp t: one of %(choices)s")
+    sp.add_argument("--unit-check", type=float, default=2.0, metavar="SECONDS",
+                    help="check the units on the first SECONDS of samples (held back, then filtered): a field "
+                    "another unit explains (gyr in °/s, acc in g or mg, mag in gauss, mT or nT) stops the stream "
+                    "with one line naming the --units that fixes it; 0: no check")
     # required: every time constant is converted at this rate, and a wrong guess (BROAD's 285.714 Hz for a
     # 100-Hz sensor) silently scales them all
     sp.add_argument("--fs", type=float, required=True,
@@ -308,7 +325,7 @@ def add_export_parser(subparsers):
                     "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")
     sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
     add_sweep_arguments(sp)
-    sp.set_defaults(func=Run("export", "togglecf.cli.export:cmd_export", extras=("export",)))
+    sp.set_defaults(func=Run("export", "togglecf.cli.export:cmd_export", extras=("export",), quiet_libraries=True))
     return sp
 
 
@@ -328,5 +345,6 @@ def add_prune_parser(subparsers):
                     help="data directory, repeatable (default: the directories the models were trained on when "
                     "they were several, else the default location)")
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
-    sp.set_defaults(func=Run("prune", "togglecf.cli.prune:cmd_prune", extras=("export", "plot")))
+    sp.set_defaults(func=Run("prune", "togglecf.cli.prune:cmd_prune", extras=("export", "plot"),
+                             quiet_libraries=True))
     return sp

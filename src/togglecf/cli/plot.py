@@ -9,9 +9,10 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from togglecf.cli.filter_list import filter_names, filter_specs
 from togglecf.cli.parsers import add_plot_parser
 from togglecf.data.broad import open_index
-from togglecf.registry import FILTER_NAMES, TOGGLING, TRAINED, FilterSpec
+from togglecf.registry import TOGGLING, TRAINED, FilterSpec
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
 __all__ = ["add_plot_parser", "cmd_plot_euler", "cmd_plot_error", "cmd_plot_3d"]
@@ -26,26 +27,16 @@ def _load_trial(args):
     return index.load(names[0])
 
 
-def _estimate(trial, name, models, use_mag):
-    spec = FilterSpec(name, models=models if name in TRAINED else None, use_mag=use_mag)
-    f = spec.build(trial.fs)
-    return f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None).quat
+def _estimate(trial, spec: FilterSpec):
+    return spec.build(trial.fs).update_batch(trial.gyr, trial.acc, trial.mag if spec.use_mag else None).quat
 
 
 def _estimates(args, trial) -> dict:
     """name -> quaternions of every filter of ``--filters`` (``--models`` adds toggling)."""
-    names = [s.strip() for s in args.filters.split(",") if s.strip()]
+    names = filter_names(args.filters)
     if args.models and TOGGLING not in names:
         names.append(TOGGLING)
-    if not names:
-        raise ValueError("--filters names no filter")
-    bad = [n for n in names if n not in FILTER_NAMES]
-    if bad:
-        raise ValueError(f"unknown filter {bad[0]!r} in --filters; available: {', '.join(FILTER_NAMES)}")
-    trained = [n for n in names if n in TRAINED]
-    if trained and not args.models:
-        raise ValueError(f"--filters {trained[0]} needs --models DIR (a `togglecf train` model directory)")
-    return {n: _estimate(trial, n, args.models, not args.six_d) for n in names}
+    return {s.name: _estimate(trial, s) for s in filter_specs(names, args.models, use_mag=not args.six_d)}
 
 
 def _plot_filters(args, figure):
@@ -66,7 +57,8 @@ def cmd_plot_error(args):
 
 def cmd_plot_3d(args):
     trial = _load_trial(args)
-    q = _estimate(trial, args.filter, args.models, not args.six_d)
+    spec = FilterSpec(args.filter, models=args.models if args.filter in TRAINED else None, use_mag=not args.six_d)
+    q = _estimate(trial, spec)
     t1 = args.end if args.end is not None else trial.duration
     out = Path(args.out)
     if out.suffix.lower() in (".gif", ".mp4"):

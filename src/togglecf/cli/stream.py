@@ -19,7 +19,7 @@ def cmd_stream(args):
     if args.port:
         check_extra("stream", what="togglecf stream --port")
     cfg = StreamConfig(fs=args.fs, time_unit=args.time_unit, units=args.units, use_mag=not args.six_d,
-                       rate=args.rate, max_gap=args.max_gap, precision=args.precision)
+                       rate=args.rate, max_gap=args.max_gap, precision=args.precision, unit_check_s=args.unit_check)
     spec = FilterSpec(args.filter, models=args.models if args.filter in TRAINED else None, use_mag=not args.six_d)
     filt = spec.build(args.fs)
     proc = StreamProcessor(filt, cfg)

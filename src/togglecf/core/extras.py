@@ -16,6 +16,8 @@ stores the trees as ``inloop_forest.json``, read without XGBoost). The rest are 
 * ``plot``: ``data`` + matplotlib (``togglecf plot``, the study's figures);
 * ``stream``: pyserial (``togglecf stream --port``; ``--input`` needs nothing);
 * ``dask``: dask.distributed (``--backend dask``);
+* ``vqf``: the reference VQF (dlaidig/vqf; the ``vqf`` filter of ``evaluate``, ``plot``, ``stream``: the
+  study's baseline at its defaults);
 * ``import``: qmt, the BROAD authors' toolbox (``togglecf import --reference``: clock synchronisation,
   IMU-to-marker and reference-frame alignment, magnetometer calibration; an import without a
   reference needs nothing);
@@ -42,6 +44,7 @@ EXTRAS = {
     "stream": ("serial",),
     "dask": ("dask", "distributed"),
     "import": ("qmt",),
+    "vqf": ("vqf",),
 }
 
 

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.units import UNIT_TABLES, unit_mismatch
+
 
 __all__ = [
     "DataError", "DataNotFoundError", "Trial", "load_trial", "DatasetIndex",
@@ -40,8 +42,6 @@ GRAVITY = 9.81  # m/s², BROAD's accelerometers read ~9.81 at rest
 BROAD_URL = "https://github.com/dlaidig/broad"
 TRIAL_SUFFIXES = (".hdf5", ".mat")
 _IMU_FIELDS = ("imu_gyr", "imu_acc", "imu_mag")
-_MILLI_G = 1000.0  # a median |acc| near this is in mg
-_MAX_PLAUSIBLE_GYRO = 35.0  # rad/s (~2000 °/s, the top of common gyro ranges); larger means °/s
 
 #: Largest fraction of a trial's samples that may be non-finite (NaN/inf) in one IMU field (gyr, acc
 #: or mag) before the trial is refused. Below it, bad samples are kept and counted (``Trial.invalid``):
@@ -166,25 +166,21 @@ class Trial:
             self._check_units(src)
 
     def _check_units(self, src):
-        acc = np.linalg.norm(self.acc, axis=1)
-        gyr = np.linalg.norm(self.gyr, axis=1)
-        acc, gyr = acc[np.isfinite(acc)], gyr[np.isfinite(gyr)]
-        if acc.size == 0 or gyr.size == 0:
-            raise DataError(src, "acc" if acc.size == 0 else "gyr", "no finite sample")
-        acc_norm = float(np.median(acc))
-        if 0.5 < acc_norm < 2.0:
-            raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g}: looks like g, expected m/s² (multiply by {GRAVITY})")
-        # Only what another unit explains is refused: vigorous motion (a phone in a running hand: a median
-        # of 20-24 m/s²) is real data, not a unit error
-        if 0.5 * _MILLI_G < acc_norm < 2.0 * _MILLI_G:
-            raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g}: looks like mg, expected m/s² "
-                                        f"(multiply by {GRAVITY / 1000})")
+        """Units another unit explains (``core.units.unit_mismatch``: g, mg, °/s, gauss, mT, nT), and an
+        accelerometer without gravity: ``DataError`` naming the field."""
+        for quantity, samples in (("acc", self.acc), ("gyr", self.gyr), ("mag", self.mag)):
+            if not np.isfinite(samples).all(axis=1).any():
+                if quantity != "mag":
+                    raise DataError(src, quantity, "no finite sample")
+                continue
+            wrong = unit_mismatch(quantity, samples)
+            if wrong is not None:
+                raise DataError(src, quantity, f"{wrong.describe()} (multiply by "
+                                               f"{UNIT_TABLES[quantity][wrong.unit]:.6g})")
+        acc_norm = float(np.nanmedian(np.linalg.norm(self.acc, axis=1)))
         if acc_norm <= 0.5:
             raise DataError(src, "acc", f"median |acc| = {acc_norm:.3g} m/s²: no gravity in the signal (expected "
                                         f"~{GRAVITY}); a unit or scale error")
-        gyr_p99 = float(np.percentile(gyr, 99))
-        if gyr_p99 > _MAX_PLAUSIBLE_GYRO:
-            raise DataError(src, "gyr", f"99th percentile |gyr| = {gyr_p99:.3g}: looks like °/s, expected rad/s")
 
     @property
     def n_samples(self) -> int:

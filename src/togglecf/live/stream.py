@@ -15,6 +15,11 @@ jumping more than ``max_gap`` s (a device reset) restart the time base (that sam
 serial errors close the port and retry. Every problem is counted, the first few of each kind
 are reported to stderr, and the counts are summarised at the end.
 
+Units are checked on the first ``unit_check_s`` seconds of samples (held back, then filtered): a field
+whose values another unit explains (``togglecf.core.units.unit_mismatch``, the trial loader's check: gyro
+in °/s, acc in g or mg, mag in gauss, mT or nT) stops the stream with one line (``UnitError``) naming
+the field, the statistic seen and the ``--units`` that fixes it; vigorous motion is never refused.
+
 The core (``StreamProcessor.feed``/``run``) takes any iterable of ``bytes`` chunks, so it is the
 same code for a serial port (``serial_chunks``), a file or a pipe (``file_chunks``).
 """
@@ -28,13 +33,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from togglecf.core import quaternion as quat
-from togglecf.core.units import TIME_UNITS, parse_units
+from togglecf.core.extras import deferred
+from togglecf.core.units import TIME_UNITS, parse_units, unit_mismatch, units_option
+
+serial = deferred("serial", extra="stream", what="togglecf stream --port")
 
 #: markers a chunk source yields after opening a port (CONNECTED) and after reopening it
 #: (RECONNECT): the partial line in the buffer is dropped and the input is resynchronised by
 #: discarding everything up to the next newline (a port is usually opened mid-line)
 CONNECTED = object()
 RECONNECT = object()
+
+class UnitError(ValueError):
+    """A stream field read in the wrong unit (``StreamConfig.unit_check_s``); the message is one line."""
+
 
 PROBLEMS = ("garbage", "non_numeric", "non_finite", "wrong_field_count", "overlong_line", "dropped_samples",
             "time_reset", "reconnects", "partial_line_dropped")
@@ -53,12 +65,13 @@ class StreamConfig:
     precision: int = 6  # decimals printed
     report_first: int = 5  # problems of each kind reported individually to stderr
     record: bool = False  # keep every (t, dt, q) in memory (tests, notebooks)
+    unit_check_s: float = 2.0  # samples held back to check the units [s at fs]; 0: no check
 
     def __post_init__(self):
         if self.time_unit not in TIME_UNITS:
             raise ValueError(f"time unit must be one of {', '.join(TIME_UNITS)}, got {self.time_unit!r}")
-        if not (self.fs > 0 and self.rate >= 0 and self.max_gap > 0):
-            raise ValueError("fs and max_gap must be > 0, rate >= 0")
+        if not (self.fs > 0 and self.rate >= 0 and self.max_gap > 0 and self.unit_check_s >= 0):
+            raise ValueError("fs and max_gap must be > 0, rate and unit_check_s >= 0")
         self.factors = parse_units(self.units)
         self.n_fields = 10 if self.use_mag else 7
 
@@ -86,6 +99,11 @@ class StreamProcessor:
         self._gf, self._af, self._mf = self.config.factors
         self._tf = TIME_UNITS[self.config.time_unit]
         self._Ts = 1.0 / self.config.fs
+        #: samples held back until the units are checked: (t, dt, gyr, acc, mag), None where the time base
+        #: restarted; None once checked
+        self._held = [] if self.config.unit_check_s > 0 else None
+        self._n_check = max(1, round(self.config.unit_check_s * self.config.fs))
+        self._n_held = 0
 
     # -- problems ------------------------------------------------------------------------------
     def _problem(self, kind, detail="", n=1):
@@ -133,11 +151,14 @@ class StreamProcessor:
             self._buf.clear()
 
     def finish(self):
-        """End of input: a trailing line without newline is processed; summary to stderr."""
+        """End of input: a trailing line without newline is processed, the samples held for the unit check
+        are checked and filtered; summary to stderr."""
         if self._buf:
             line = bytes(self._buf)
             self._buf.clear()
             self.feed_line(line)
+        if self._held:
+            self._check_units()
         print(self.summary(), file=self.err)
 
     def run(self, chunks):
@@ -193,7 +214,10 @@ class StreamProcessor:
             if not (0.0 < dt <= self.config.max_gap):
                 self._problem("time_reset", f"Δt = {dt:.6g} s at t = {t:.6g} s: time base restarted, sample skipped")
                 self._last_t = t
-                self._next_print = -math.inf
+                if self._held is not None:
+                    self._held.append(None)  # the print times restart here when the held samples are filtered
+                else:
+                    self._next_print = -math.inf
                 return
             if dt > self.config.gap_factor * self._Ts:
                 n = max(1, int(round(dt / self._Ts)) - 1)
@@ -203,6 +227,33 @@ class StreamProcessor:
         gyr = np.array((v[1] * gf, v[2] * gf, v[3] * gf))
         acc = np.array((v[4] * af, v[5] * af, v[6] * af))
         mag = np.array((v[7] * mf, v[8] * mf, v[9] * mf)) if self.config.use_mag else None
+        if self._held is not None:
+            self._held.append((t, dt, gyr, acc, mag))
+            self._n_held += 1
+            if self._n_held >= self._n_check:
+                self._check_units()
+            return
+        self._filter(t, dt, gyr, acc, mag)
+
+    def _check_units(self):
+        """The held samples' units (``UnitError`` on a field another unit explains), then those samples
+        filtered in order."""
+        held, self._held = self._held, None
+        samples = [h for h in held if h is not None]
+        fields = {"gyr": 2, "acc": 3, "mag": 4} if self.config.use_mag else {"gyr": 2, "acc": 3}
+        for (quantity, k), factor in zip(fields.items(), self.config.factors):
+            wrong = unit_mismatch(quantity, np.array([h[k] for h in samples]), factor)
+            if wrong is not None:
+                raise UnitError(f"field {quantity!r} over the first {len(samples)} samples: {wrong.describe()}; "
+                                f"rerun with --units {units_option(self.config.units, quantity, wrong.unit)} "
+                                "(--unit-check 0 skips this check)")
+        for sample in held:
+            if sample is None:
+                self._next_print = -math.inf
+            else:
+                self._filter(*sample)
+
+    def _filter(self, t, dt, gyr, acc, mag):
         q = self.filt.update(gyr, acc, mag, dt=dt)
         self.n_samples += 1
         if self.config.record:
@@ -246,8 +297,6 @@ def serial_chunks(port: str, baud: int = 115200, retry_s: float = 1.0, max_recon
     each reopening) — up to
     ``max_reconnects`` times (None: forever). Ends after ``idle_timeout`` s without data (None:
     never). ``serial_factory(port, baud)`` opens the port (default ``serial.Serial``)."""
-    import serial
-
     err = err if err is not None else sys.stderr
     if serial_factory is None:
         def serial_factory(port, baud):

@@ -258,7 +258,7 @@ def test_null_mag_equals_no_mag_option(exported, mini_trial):
 
 def test_report_state_size_and_code_size(exported):
     rep, _ = exported["9d"]
-    L, S = rep["window"], rep["n_classes"]
+    L, S = rep["window_max"], rep["n_classes"]
     assert rep["state_bytes"] == cv.state_bytes_formula(L, S)
     assert rep["state_bytes_parts"]["core"] == 532
     assert {"eta_acc_x", "eta_acc_y", "eta_acc_z"} <= set(rep["dropped_outputs"])  # w_a = 0 in 9D
@@ -267,7 +267,7 @@ def test_report_state_size_and_code_size(exported):
     assert set(cv.VQFT_TEMPLATES) | {"tcf_config.h", "tcf_vqf_config.h", "tcf_forest.h", "tcf_forest.c",
                                      "Makefile"} <= names
     config = (Path(rep["out_dir"]) / "tcf_config.h").read_text()
-    assert "TCF_VQFT_LN_TAU_ACC_INIT" in config and f"#define TCF_WINDOW {L}" in config
+    assert "TCF_VQFT_LN_TAU_ACC_INIT" in config and f"#define TCF_WINDOW_MAX {L}" in config
     assert (Path(rep["out_dir"]) / "vqf_toggling_report.json").is_file()
     host = rep["code_bytes"]["host"]
     assert 0 < rep["code_bytes_trees"]["host"] < host <= CODE_MAX * 1.5, rep["code_bytes"]
@@ -296,8 +296,8 @@ def test_sources_compile_without_warnings(exported, tmp_path):
 def test_export_errors_name_the_problem(tiny_model_dir, model_dir, mini_trial, tmp_path):
     with pytest.raises(FileNotFoundError, match="gains.json"):  # the tiny models have no gains
         cv.export_c_vqf_toggling(tiny_model_dir, tmp_path / "a", mini_trial.fs)
-    with pytest.raises(ValueError, match="sampling_rate"):
-        cv.export_c_vqf_toggling(model_dir, tmp_path / "b", 100.0)
+    with pytest.raises(ValueError, match="max_fs"):  # the harness's default rate above the largest supported
+        cv.export_c_vqf_toggling(model_dir, tmp_path / "b", 500.0, max_fs=400.0)
     with pytest.raises(FileNotFoundError, match="tcf_config.h"):
         cv.build_vqft_harness(tmp_path)
 

@@ -65,6 +65,8 @@ from conftest import with_fixed_gains
 from togglecf.core.quaternion import angle_between
 from togglecf.data.broad import DatasetIndex
 from togglecf.embedded import cvqf_toggling as cv
+from togglecf.embedded.library import SKETCH_C_BEGIN, SKETCH_C_END
+from togglecf.embedded.toolchain import ARM_FLAGS, ARM_GCC, arm_available, link_arm
 from togglecf.features.windows import feature_coefficients, hop_length, window_length
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.toggling.load import load_toggling_filter
@@ -465,6 +467,85 @@ def test_sources_compile_without_warnings(exported, tmp_path):
     if shutil.which("make"):
         res = subprocess.run(["make", "-s", "-C", str(d), "tcf_vqf_toggling_harness"], capture_output=True, text=True)
         assert res.returncode == 0 and res.stderr == "", res.stderr
+
+
+_ARDUINO_STUB = """#pragma once
+#include <stddef.h>
+unsigned long micros(void);
+struct StubSerial {
+  void begin(unsigned long) {}
+  void print(const char *) {}
+  void print(char) {}
+  void print(int) {}
+  void print(double, int) {}
+  void println(int) {}
+  void println(double, int) {}
+};
+extern StubSerial Serial;
+"""
+
+
+def _firmware_main(calls: str) -> str:
+    """The sketch's filter calls (``library.sketch_c_calls``) as a C99 firmware: init at 100 Hz, one
+    sample from volatile inputs (nothing folded away)."""
+    return f"""#include <stddef.h>
+#include "tcf_vqf_toggling.h"
+{calls}
+volatile float tcf_in[10];
+float tcf_q[4];
+int main(void) {{
+  float g[3], a[3], m[3];
+  int i;
+  if (filter_begin(100.0f) != TCF_OK) return 1;
+  for (i = 0; i < 3; ++i) {{ g[i] = tcf_in[i]; a[i] = tcf_in[3 + i]; m[i] = tcf_in[6 + i]; }}
+  filter_step(g, a, m, tcf_in[9], tcf_q);
+  return (int)tcf_q[0];
+}}
+"""
+
+
+def test_arduino_library_layout_and_cortex_m4f_build(exported, tmp_path):
+    """The export's Arduino / PlatformIO library: metadata, src/ (the firmware files), the sketch
+    and README. Compiled (no Arduino tool chain here): src/*.c with the host gcc (warnings as
+    errors); for the Cortex-M4F (arm-none-eabi-gcc, hard float) src/*.c with warnings as errors,
+    the sketch's filter calls (its plain-C block) linked with them as a C99 firmware (size
+    reported), and the sketch itself as C++ (arm-none-eabi-g++, a stub Arduino.h)."""
+    rep, _ = exported["9d"]
+    lib = Path(rep["library"])
+    props = dict(line.split("=", 1) for line in (lib / "library.properties").read_text().splitlines() if line)
+    assert props["name"] == lib.name == "TogglecfLearnedVQF" and props["includes"] == "tcf_vqf_toggling.h"
+    manifest = json.loads((lib / "library.json").read_text())
+    assert manifest["name"] == lib.name and manifest["frameworks"] == ["arduino"] and manifest["version"] == props["version"]
+    assert {p.name for p in (lib / "src").iterdir()} == set(cv.LIBRARY_FILES)
+    sketch = (lib / "examples" / "LearnedVQF" / "LearnedVQF.ino").read_text()
+    readme = (lib / "README.md").read_text()
+    assert "tcf_vqft_init(&f, 100.0f)" in readme and f"TCF_MAX_FS` = {rep['max_fs']:g} Hz" in readme
+    assert f"= {rep['state_bytes']} bytes" in readme and "ENU" in readme
+    calls = sketch[sketch.index(SKETCH_C_BEGIN):sketch.index(SKETCH_C_END) + len(SKETCH_C_END)]
+    assert "tcf_vqft_update_dt" in calls and "IMU_RATE_HZ" in sketch
+    sources = sorted(str(p) for p in (lib / "src").glob("*.c"))
+    for src in sources:
+        res = subprocess.run(["gcc", *WARN_FLAGS, "-O2", "-c", src, "-o", str(tmp_path / "x.o"), f"-I{lib / 'src'}"],
+                             capture_output=True, text=True)
+        assert res.returncode == 0 and res.stderr == "", f"{src}:\n{res.stderr}"
+    if not arm_available() or shutil.which("arm-none-eabi-g++") is None:
+        pytest.skip("arm-none-eabi-gcc/g++ not installed: the Cortex-M4F build of the library is not checked")
+    for src in sources:
+        res = subprocess.run([ARM_GCC, *ARM_FLAGS, "-std=c99", "-Wall", "-Wextra", "-pedantic", "-Werror", "-Os", "-c",
+                              src, "-o", str(tmp_path / "x.o"), f"-I{lib / 'src'}"], capture_output=True, text=True)
+        assert res.returncode == 0 and res.stderr == "", f"{src}:\n{res.stderr}"
+    linked = link_arm(sources, [lib / "src"], _firmware_main(calls))
+    assert linked is not None, "the Cortex-M4F newlib-nano link failed"
+    print(f"Arduino library, Cortex-M4F firmware of the sketch's calls (-Os, --gc-sections, newlib-nano, libm): "
+          f"text {linked['text']} B, data {linked['data']} B, bss {linked['bss']} B (state {rep['state_bytes']} B)")
+    assert linked["bss"] >= rep["state_bytes"] and linked["flash"] <= 2 * CODE_MAX, linked
+    (tmp_path / "Arduino.h").write_text(_ARDUINO_STUB)
+    cpp = tmp_path / "LearnedVQF.cpp"
+    cpp.write_text(sketch)
+    res = subprocess.run(["arm-none-eabi-g++", *ARM_FLAGS, "-std=c++11", "-Wall", "-Wextra", "-Werror", "-Os",
+                          "-fno-exceptions", "-fno-rtti", "-c", str(cpp), "-o", str(tmp_path / "sketch.o"),
+                          f"-I{tmp_path}", f"-I{lib / 'src'}"], capture_output=True, text=True)
+    assert res.returncode == 0 and res.stderr == "", res.stderr
 
 
 def test_export_errors_name_the_problem(tiny_model_dir, model_dir, mini_trial, tmp_path):

@@ -326,13 +326,13 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
     for mode, (rep, _) in exported.items():
         L, S = rep["window"], rep["n_classes"]
         assert rep["state_bytes"] > 0
-        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (54 + 12 * L + S)
+        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (60 + 12 * L + S)
         assert rep["n_trees"] < len(full.roots)  # unused outputs' trees are not exported
         names = {Path(f).name for f in rep["files"]}
         assert {"tcf_filter.h", "tcf_filter.c", "tcf_config.h", "tcf_forest.h", "tcf_forest.c", "tcf_harness.c",
                 "Makefile"} <= names
         config = (Path(rep["out_dir"]) / "tcf_config.h").read_text()
-        assert f"#define TCF_WINDOW {L}" in config and f"#define TCF_USE_MAG {1 if mode == '9d' else 0}" in config
+        assert f"#define TCF_WINDOW_MAX {L}" in config and f"#define TCF_USE_MAG {1 if mode == '9d' else 0}" in config
         assert rep["model_hash"] in config
         assert (Path(rep["out_dir"]) / "filter_report.json").is_file()
         # gains.json holds time constants; the header gets the per-sample gains at the export rate

@@ -58,17 +58,23 @@ C_FILTER = framework.CSourceSet(
 
 def state_bytes_formula(window: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (54 + 12 L + S)`` (54 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, EMA references
-    as hi + lo 10, candidate field as hi + lo 4 and its count 1, previous acc 3, last-sample
-    features 10, counters 3, η̂ 6, diagnostics 3; 12 L the ring; S the class probabilities)."""
-    return 4 * (54 + 12 * int(window) + int(n_classes))
+    ``4 · (60 + 12 L + S)`` (60 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features'
+    per-sample constants 6, EMA references as hi + lo 10, candidate field as hi + lo 4 and its count
+    1, previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3; 12 L the ring; S the
+    class probabilities)."""
+    return 4 * (60 + 12 * int(window) + int(n_classes))
 
 
-def _filter_defines(settings, params, static_index: int) -> str:
-    """The toggling CF's own lines of ``tcf_config.h``: step size limit, per-sample gains, bias
-    learning, disturbance scaling, noise weights and the fallback gains."""
+def _filter_defines(settings, params, static_index: int, fs: float) -> str:
+    """The toggling CF's own lines of ``tcf_config.h``: its rate ``fs`` [Hz] (this export is
+    locked to it), step size limit, per-sample gains, bias learning, disturbance scaling, noise
+    weights and the fallback gains."""
     s, p = settings, params
-    return f"""#define TCF_MAX_DT {c_float(s.max_dt)}   /* s, longest step still integrated */
+    return f"""/* sampling: call tcf_filter_update once per sample at this rate (this build is for TCF_FS only; the
+ * features are set to it by tcf_filter_init, TCF_MAX_FS = TCF_FS) */
+#define TCF_FS {c_float(fs)}            /* Hz */
+#define TCF_DT {c_float(1.0 / fs)}      /* s, 1 / TCF_FS */
+#define TCF_MAX_DT {c_float(s.max_dt)}   /* s, longest step still integrated */
 
 /* learned gains (gains.json), per class in the order above: per-sample gains at
  * TCF_FS, k = 1 - exp(-TCF_DT / tau) of the learned time constants (this build is for TCF_FS only)
@@ -103,7 +109,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
     comment, common = learned.learned_config(ex, model_dir, use_mag,
                                              f"filter: the toggling CF (gains.json, {'9d' if use_mag else '6d'})")
     config = framework.config_header("tcf_config.h", "cfilter.export_c_filter", comment, common + "\n"
-                                     + _filter_defines(s, filt.params, s.states.index(s.static_state)))
+                                     + _filter_defines(s, filt.params, s.states.index(s.static_state), ex.fs))
     files = framework.write_source_set(out_dir, C_FILTER, {"tcf_config.h": config})
     forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex)
     files += forest_files
@@ -118,7 +124,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
                                    "alpha_fallback_mag": float(p.alpha_fallback_mag)},
               "schema_hash": ex.schema_hash, "model_hash": ex.model_hash, "gains_sha256": ex.gains_hash,
               "fallback": learned.fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (54 + 12 * window + n_classes)",
+              "state_bytes_formula": "4 * (60 + 12 * window + n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = framework.probe_sizes(out_dir, "tcf_filter.h", ["sizeof(tcf_filter_t)", "TCF_STATE_BYTES"])
     if documented != report["state_bytes_documented"]:

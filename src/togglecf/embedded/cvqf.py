@@ -72,10 +72,12 @@ _BOOL_SETTINGS = {"motion_bias_est_enabled", "rest_bias_est_enabled", "mag_dist_
 # Export
 # ------------------------------------------------------------------------------------------
 
-def vqf_config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> str:
+def vqf_config_header(fs, settings: VQFCoreSettings, use_mag: bool) -> str:
     """``tcf_vqf_config.h``: rate ``fs`` [Hz], mode and every setting of ``settings`` as the
-    ``tcf_vqf_params_t`` initialiser ``TCF_VQF_PARAMS_INIT``."""
-    lines = [f"    .fs = {c_float(fs)},", f"    .use_mag = {1 if use_mag else 0},"]
+    ``tcf_vqf_params_t`` initialiser ``TCF_VQF_PARAMS_INIT``. ``fs=None``: no rate (``.fs`` 0, no
+    ``TCF_VQF_FS``): the filter that embeds the core sets ``.fs`` at init."""
+    rate = [] if fs is None else [f"    .fs = {c_float(fs)},"]
+    lines = [*rate, f"    .use_mag = {1 if use_mag else 0},"]
     for f in fields(settings):
         v = getattr(settings, f.name)
         lines.append(f"    .{f.name} = {int(bool(v)) if f.name in _BOOL_SETTINGS else c_float(v)},")
@@ -83,9 +85,11 @@ def vqf_config_header(fs: float, settings: VQFCoreSettings, use_mag: bool) -> st
     comment = ["VQF core settings (togglecf.filters.vqf_core.VQFCoreSettings, VQF's units: deg/s, deg, s,",
                "m/s^2) and rate; tcf_vqf_init derives the per-sample coefficients from them.",
                f"mode: {'9D (acc + gyr + mag)' if use_mag else '6D (acc + gyr)'}"]
+    rate_defines = ("/* no rate: .fs is set at init (tcf_vqft_init(&f, fs)) */" if fs is None else
+                    f"""#define TCF_VQF_FS {c_float(fs)}          /* Hz: call tcf_vqf_update once per sample at this rate */
+#define TCF_VQF_DT {c_float(1.0 / fs)}    /* s, 1 / TCF_VQF_FS */""")
     return framework.config_header("tcf_vqf_config.h", "cvqf.export_c_vqf", comment, f"""
-#define TCF_VQF_FS {c_float(fs)}          /* Hz: call tcf_vqf_update once per sample at this rate */
-#define TCF_VQF_DT {c_float(1.0 / fs)}    /* s, 1 / TCF_VQF_FS */
+{rate_defines}
 #define TCF_VQF_USE_MAG {1 if use_mag else 0}
 
 /* static const tcf_vqf_params_t p = TCF_VQF_PARAMS_INIT; tcf_vqf_init(&f, &p); */

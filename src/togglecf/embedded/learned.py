@@ -22,8 +22,12 @@ from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length
 from togglecf.toggling.gains import GAINS_FILE, mode_name
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["FEATURE_TEMPLATES", "ModelExport", "load_model_export", "model_export", "check_export_rate",
-           "check_feature_layout", "fallback_config", "features_config", "write_forest", "learned_config"]
+__all__ = ["FEATURE_TEMPLATES", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
+           "check_model_dir", "check_rate", "check_export_rate", "check_feature_layout", "fallback_config",
+           "features_config", "write_forest", "learned_config"]
+
+#: Hz, the largest rate a rate-free export runs at by default (``TCF_MAX_FS``: the feature ring is sized for it)
+DEFAULT_MAX_FS = 400.0
 
 #: the models in the loop (streaming features, range check, tree walk), shipped with every learned filter
 FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c")
@@ -71,27 +75,34 @@ def fallback_config(models) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", info
 
 
-def features_config(*, fs: float, window: int, hop: int, feat_params, models) -> str:
-    """The ``tcf_config.h`` block of the models in the loop (``tcf_features.c``): rate, window,
-    hop, EMA constants, gravity and the out-of-range fallback."""
-    lam_ref, lam_lp, gravity = float(feat_params.ref_decay), float(feat_params.lp_decay), float(feat_params.gravity)
-    fallback, _ = fallback_config(models)
-    return f"""/* sampling: call the update once per sample at this rate */
-#define TCF_FS {c_float(fs)}            /* Hz */
-#define TCF_DT {c_float(1.0 / fs)}      /* s, 1 / TCF_FS */
+def _c_double(v) -> str:
+    """``v`` as a C double literal that round-trips (Python's repr of a float)."""
+    return repr(float(v))
 
-/* features (togglecf.features.windows.FeatureSettings of the model) */
-#define TCF_WINDOW {window}          /* samples per window, L */
-#define TCF_HOP {hop}               /* samples between predictions, H */
-#define TCF_LAM_REF {c_float(lam_ref)}     /* exp(-1 / (ref_tau_s fs)): |m| and dip reference and candidate */
-#define TCF_LAM_REF_C {c_float(1.0 - lam_ref)}   /* 1 - TCF_LAM_REF (rounded from float64) */
+
+def features_config(*, fset, feat_params, models, max_fs: float) -> str:
+    """The ``tcf_config.h`` block of the models in the loop (``tcf_features.c``): the feature
+    settings ``fset`` (``FeatureSettings``) in seconds, from which ``tcf_features_init`` derives
+    window, hop and EMA gains at the rate it is given; the largest rate ``max_fs`` [Hz] and the
+    ring it needs; the rate-free gates of ``feat_params`` (``FeatureCoefficients``), gravity and
+    the out-of-range fallback."""
+    fallback, _ = fallback_config(models)
+    return f"""/* features (togglecf.features.windows.FeatureSettings of the model), in seconds: tcf_features_init(s, fs)
+ * derives the per-sample constants at its rate fs [Hz] (L = max(2, round(TCF_WINDOW_S fs)), H = max(1,
+ * round(TCF_HOP_S fs)), EMA gains 1 - exp(-1 / (tau fs)); double literals, Python's round) */
+#define TCF_WINDOW_S {_c_double(fset.window_s)}      /* s, window length */
+#define TCF_HOP_S {_c_double(fset.hop_s)}         /* s, spacing of the window ends (predictions) */
+#define TCF_REF_TAU_S {_c_double(fset.ref_tau_s)}     /* s, |m| and dip reference and candidate follow the field */
+#define TCF_LP_TAU_S {_c_double(fset.lp_tau_s)}      /* s, acc low-pass behind acc_hp */
+#define TCF_REF_NEW_S {_c_double(fset.ref_new_s)}     /* s, rotating time for a new field to become the reference */
+/* the largest supported rate: the feature ring holds TCF_WINDOW_MAX = max(2, round(TCF_WINDOW_S TCF_MAX_FS))
+ * samples (12 floats each); init refuses a higher rate. Change both by exporting with another max_fs */
+#define TCF_MAX_FS {_c_double(max_fs)}        /* Hz */
+#define TCF_WINDOW_MAX {window_length(max_fs, fset.window_s)}
 #define TCF_REF_NORM_TH {c_float(feat_params.ref_norm_th)}   /* field agrees: ||m| - r| < this * r */
 #define TCF_REF_DIP_TH {c_float(feat_params.ref_dip_th)}    /* rad, and |dip - d| < this */
-#define TCF_REF_NEW_N {int(feat_params.ref_new_samples)}u     /* round(ref_new_s fs): rotating samples to take a new field */
 #define TCF_REF_MIN_GYR_SQ {c_float(feat_params.ref_new_min_gyr_sq)}   /* (rad/s)^2: a sample counts as rotating from this |w|^2 */
-#define TCF_LAM_LP {c_float(lam_lp)}      /* exp(-1 / (lp_tau_s fs)): acc low-pass */
-#define TCF_LAM_LP_C {c_float(1.0 - lam_lp)}
-#define TCF_GRAVITY {c_float(gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
+#define TCF_GRAVITY {c_float(feat_params.gravity)}     /* m/s^2, acc_norm_dev = |a| - g */
 
 {fallback}
 /* tree leaf sums in float32 (define TCF_ACC_T as double before this header for double sums) */
@@ -108,10 +119,8 @@ def check_feature_layout():
                            "(tcf_push_sample) and learned._WINDOW_CHANNELS/_LAST_CHANNELS to match")
 
 
-def check_export_rate(model_dir, fs) -> tuple[dict, float]:
-    """The checks every filter export makes: ``model_dir`` is a model directory with
-    ``gains.json``, ``fs`` a positive rate equal to the models' ``sampling_rate`` (the features
-    were learned at it). Returns (metadata, fs as float)."""
+def check_model_dir(model_dir) -> dict:
+    """``model_dir`` is a model directory with ``gains.json``; returns its ``metadata.json``."""
     model_dir = Path(model_dir)
     meta_path = model_dir / "metadata.json"
     if not meta_path.is_file():
@@ -120,10 +129,23 @@ def check_export_rate(model_dir, fs) -> tuple[dict, float]:
     if not gains_path.is_file():
         raise FileNotFoundError(f"{gains_path}: no learned gains; the C filter needs them "
                                 "(`togglecf train` learns them, or gains.save_gains)")
+    return json.loads(meta_path.read_text())
+
+
+def check_rate(fs, what: str = "fs") -> float:
+    """``fs`` as a float, refused unless a finite rate > 0 [Hz]."""
     if not (isinstance(fs, (int, float, np.floating)) and math.isfinite(fs) and fs > 0):
-        raise ValueError(f"fs must be a positive sampling rate in Hz, got {fs!r}")
-    fs = float(fs)
-    meta = json.loads(meta_path.read_text())
+        raise ValueError(f"{what} must be a positive sampling rate in Hz, got {fs!r}")
+    return float(fs)
+
+
+def check_export_rate(model_dir, fs) -> tuple[dict, float]:
+    """The checks of an export locked to one rate (the toggling CF): ``model_dir`` is a model
+    directory with ``gains.json`` (``check_model_dir``), ``fs`` a positive rate equal to the
+    models' ``sampling_rate``. Returns (metadata, fs as float)."""
+    meta = check_model_dir(model_dir)
+    meta_path = Path(model_dir) / "metadata.json"
+    fs = check_rate(fs)
     sr = meta.get("sampling_rate")
     if sr is not None and abs(fs / float(sr) - 1.0) > _FS_RTOL:
         raise ValueError(f"fs = {fs:g} Hz differs from the models' sampling_rate {float(sr):g} Hz in {meta_path}: "
@@ -149,14 +171,20 @@ class ModelExport:
     gains_hash: str
     schema_hash: str
     fs: float
+    max_fs: float = 0.0
+    window_max: int = 0
 
 
-def model_export(model_dir: Path, meta: dict, fs: float, filt) -> ModelExport:
-    """The ``ModelExport`` of ``filt`` (loaded from ``model_dir`` at rate ``fs``; ``meta`` its
-    ``metadata.json``); refuses a rate at which the gyro would never be integrated."""
+def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None) -> ModelExport:
+    """The ``ModelExport`` of ``filt`` (loaded from ``model_dir`` at rate ``fs`` [Hz]; ``meta`` its
+    ``metadata.json``), the feature ring sized for ``max_fs`` [Hz] (default ``fs``); refuses a
+    rate at which the gyro would never be integrated, or ``fs > max_fs``."""
     s = filt.settings
+    max_fs = fs if max_fs is None else check_rate(max_fs, "max_fs")
     if not 1.0 / fs <= s.max_dt:
         raise ValueError(f"1/fs = {1 / fs:g} s exceeds max_dt = {s.max_dt:g} s: the gyro would never be integrated")
+    if fs > max_fs:
+        raise ValueError(f"fs = {fs:g} Hz is above max_fs = {max_fs:g} Hz (the largest rate the export supports)")
     classes = list(filt.models.class_names)
     k = len(classes)
     out_names = classes + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
@@ -171,7 +199,8 @@ def model_export(model_dir: Path, meta: dict, fs: float, filt) -> ModelExport:
                        model_hash=hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode())
                        .hexdigest(),
                        gains_hash=file_sha256(model_dir / GAINS_FILE),
-                       schema_hash=meta.get("feature_schema", {}).get("hash", "?"), fs=fs)
+                       schema_hash=meta.get("feature_schema", {}).get("hash", "?"), fs=fs, max_fs=max_fs,
+                       window_max=window_length(max_fs, fset.window_s))
 
 
 def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport) -> tuple[list, int]:
@@ -186,19 +215,26 @@ def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport) -> tuple[list,
     return files, int(header.split("#define TCF_N_NODES ")[1].split()[0])
 
 
-def load_model_export(model_dir, fs, use_mag: bool, kind: str) -> ModelExport:
-    """The checks every learned-filter export makes (``check_export_rate``,
-    ``check_feature_layout``), then the filter ``kind`` of ``model_dir`` (``"toggling"``,
-    ``"vqf_toggling"``) loaded at ``fs`` [Hz] in 9D (``use_mag``) or 6D, as a ``ModelExport``."""
+def load_model_export(model_dir, fs, use_mag: bool, kind: str, max_fs=None) -> ModelExport:
+    """The checks every learned-filter export makes (``check_feature_layout``; the model
+    directory), then the filter ``kind`` of ``model_dir`` (``"toggling"``, ``"vqf_toggling"``)
+    loaded at ``fs`` [Hz] in 9D (``use_mag``) or 6D, as a ``ModelExport``. Locked to one rate
+    (``max_fs=None``: ``check_export_rate``, ``fs`` must be the models' ``sampling_rate``) or
+    rate-free (``max_fs`` [Hz] given: the C takes its rate at init; ``fs`` is then only the
+    harness's default rate, the models' ``sampling_rate`` when None)."""
     model_dir = Path(model_dir)
-    meta, fs = check_export_rate(model_dir, fs)
+    if max_fs is None:
+        meta, fs = check_export_rate(model_dir, fs)
+    else:
+        meta = check_model_dir(model_dir)
+        fs = check_rate(fs if fs is not None else meta.get("sampling_rate"))
     check_feature_layout()
     try:
         filt = load_toggling_filter(model_dir, fs, use_mag=use_mag, kind=kind)
     except KeyError as e:
         raise ValueError(f"{model_dir / GAINS_FILE}: no {mode_name(kind, use_mag)} gains "
                          f"(add it to [gains] modes and retrain): {e}") from None
-    return model_export(model_dir, meta, fs, filt)
+    return model_export(model_dir, meta, fs, filt, max_fs)
 
 
 def learned_config(ex: ModelExport, model_dir: Path, use_mag: bool, filter_line: str) -> tuple[list, str]:
@@ -219,8 +255,8 @@ def learned_config(ex: ModelExport, model_dir: Path, use_mag: bool, filter_line:
     names = "{" + ", ".join(c_string(c) for c in ex.classes) + "}"
     body = f"""#define TCF_MODEL_ID {model_id}
 
-{features_config(fs=ex.fs, window=ex.window, hop=ex.hop, feat_params=filt.streaming_features.params,
-                 models=filt.models)}
+{features_config(fset=filt.models.feature_settings, feat_params=filt.streaming_features.params,
+                 models=filt.models, max_fs=ex.max_fs)}
 #define TCF_USE_MAG {1 if use_mag else 0}
 #define TCF_CLASS_NAMES_INIT {names}
 """

@@ -232,29 +232,44 @@ static int tcf_csv_read(const char *prog, const char *path, const int *allowed, 
 
 #ifdef TCF_CSV_LEARNED_INPUTS
 /* The inputs of a learned filter's harness: the IMU CSV (9 columns, or 6 without mag: then
-   *no_mag = 1; rows of 9 floats in *x) and, with pred_path, the prediction CSV of n_pred columns
-   with one row per sample (*px; NULL without pred_path). Returns 0, or 1 after printing the
-   error (nothing left allocated). */
+   *no_mag = 1; rows of 9 floats in *x; a last column dt [s] makes 10 or 7: then *dt holds it per
+   sample, else *dt = NULL) and, with pred_path, the prediction CSV of n_pred columns with one row
+   per sample (*px; NULL without pred_path). Returns 0, or 1 after printing the error (nothing
+   left allocated). */
 static int tcf_csv_read_learned_inputs(const char *prog, const char *in_path, const char *pred_path, int n_pred,
-                                       float **x, long *n, int *no_mag, float **px) {
-  static const int imu_cols[2] = {6, 9};
-  int n_cols, n_pcols;
-  long n_rows;
+                                       float **x, long *n, int *no_mag, float **dt, float **px) {
+  static const int imu_cols[4] = {6, 7, 9, 10};
+  int n_cols, n_pcols, k;
+  long n_rows, s;
   *px = NULL;
-  if (tcf_csv_read(prog, in_path, imu_cols, 2, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 (no mag)",
-                   x, n, &n_cols))
+  *dt = NULL;
+  if (tcf_csv_read(prog, in_path, imu_cols, 4, "9 (gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z) or 6 "
+                   "(no mag), optionally + dt", x, n, &n_cols))
     return 1;
-  if (n_cols == 6) *no_mag = 1;
+  if (n_cols == 6 || n_cols == 7) *no_mag = 1;
+  if (n_cols == 7 || n_cols == 10) {  /* the dt column */
+    *dt = (float *)malloc(sizeof(float) * (size_t)(*n ? *n : 1));
+    if (!*dt) {
+      free(*x);
+      return tcf_csv_fail(prog, in_path, 0, "out of memory", NULL);
+    }
+  }
+  for (s = 0; s < *n; ++s) {  /* rows of 10 (tcf_csv_read's stride) -> gyr, acc, mag (0 without) in rows of 9 */
+    const float *r = *x + 10 * s;
+    float *o = *x + 9 * s, d = r[n_cols - 1];  /* forward and in place: o[k] overwrites nothing unread */
+    for (k = 0; k < 9; ++k) o[k] = (k < 6 || n_cols >= 9) ? r[k] : 0.0f;
+    if (*dt) (*dt)[s] = d;
+  }
   if (pred_path) {
     if (tcf_csv_read(prog, pred_path, &n_pred, 1, "TCF_N_PRED (class probabilities, eta_acc xyz, eta_mag xyz)", px,
                      &n_rows, &n_pcols)) {
-      free(*x);
+      free(*x); free(*dt);
       return 1;
     }
     if (n_rows != *n) {
       char msg[96];
       sprintf(msg, "has %ld prediction rows for %ld samples", n_rows, *n);
-      free(*x); free(*px);
+      free(*x); free(*px); free(*dt);
       return tcf_csv_fail(prog, pred_path, 0, msg, NULL);
     }
   }
@@ -271,6 +286,7 @@ typedef struct tcf_csv_learned {
   int n_diag;    /* diagnostics per sample after w,x,y,z (set before tcf_csv_learned_begin) */
   long n;        /* samples */
   float *x;      /* inputs, 9 per sample: gyr, acc, mag (0 without; then no_mag = 1) */
+  float *dt;     /* time step [s] per sample (the input's dt column; NULL without: the nominal step) */
   float *px;     /* predictions, n_pred per sample (NULL without --pred) */
   float *qo;     /* output quaternions, 4 per sample */
   float *dg;     /* output diagnostics, n_diag per sample */
@@ -279,8 +295,8 @@ typedef struct tcf_csv_learned {
 #define TCF_CSV_MAX_OPTIONS 8
 
 static void tcf_csv_learned_free(tcf_csv_learned_t *h) {
-  free(h->x); free(h->px); free(h->qo); free(h->dg);
-  h->x = h->px = h->qo = h->dg = NULL;
+  free(h->x); free(h->px); free(h->qo); free(h->dg); free(h->dt);
+  h->x = h->px = h->qo = h->dg = h->dt = NULL;
 }
 
 /* Parse the command line (the common options and the n_extra of extra; usage: its synopsis), read
@@ -292,16 +308,17 @@ static int tcf_csv_learned_begin(const char *prog, int argc, char **argv, const 
   int k, n_opts = 4, status;
   h->pred_path = NULL;
   h->no_mag = h->diag = h->timing = 0;
-  h->x = h->px = h->qo = h->dg = NULL;
+  h->x = h->px = h->qo = h->dg = h->dt = NULL;
   opts[0].name = "--no-mag"; opts[0].flag = &h->no_mag; opts[0].value = NULL;
   opts[1].name = "--diag"; opts[1].flag = &h->diag; opts[1].value = NULL;
   opts[2].name = "--time"; opts[2].flag = &h->timing; opts[2].value = NULL;
   opts[3].name = "--pred"; opts[3].flag = NULL; opts[3].value = &h->pred_path;
   for (k = 0; k < n_extra && n_opts < TCF_CSV_MAX_OPTIONS; ++k) opts[n_opts++] = extra[k];
-  status = tcf_csv_args(prog, argc, argv, opts, n_opts, usage, "gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,mag_y,mag_z]",
-                        fs, &h->in_path, &h->out_path);
+  status = tcf_csv_args(prog, argc, argv, opts, n_opts, usage,
+                        "gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z[,mag_x,mag_y,mag_z][,dt]", fs, &h->in_path, &h->out_path);
   if (status) return status;
-  if (tcf_csv_read_learned_inputs(prog, h->in_path, h->pred_path, n_pred, &h->x, &h->n, &h->no_mag, &h->px)) return 1;
+  if (tcf_csv_read_learned_inputs(prog, h->in_path, h->pred_path, n_pred, &h->x, &h->n, &h->no_mag, &h->dt, &h->px))
+    return 1;
   if (tcf_csv_alloc_out(prog, h->in_path, h->n, h->n_diag, &h->qo, &h->dg)) {
     tcf_csv_learned_free(h);
     return 1;

@@ -38,7 +38,7 @@ static void ema_update(float *hi, float *lo, float c, float x) {
 
 /* The field reference after sample k (togglecf.features.windows.mag_reference_step; VQF's
    eqs. M2-M3 in the sensor frame): the reference follows |m| and the dip only while they agree
-   with it; a candidate that has agreed with itself for TCF_REF_NEW_N rotating samples replaces a
+   with it; a candidate that has agreed with itself for rate.ref_new_n rotating samples replaces a
    reference the field disagrees with. The helpers are shared by reference and candidate (code
    size: every float operation is a call on a soft-float target). */
 #if defined(__GNUC__)
@@ -56,9 +56,9 @@ static TCF_NOINLINE int field_agrees(const tcf_field_t *r, float mn, float dip) 
   return fabsf(mn - r->mag) < TCF_REF_NORM_TH * r->mag && fabsf(dip - r->dip) < TCF_REF_DIP_TH;
 }
 
-static TCF_NOINLINE void field_follow(tcf_field_t *r, float mn, float dip) {
-  ema_update(&r->mag, &r->mag_lo, TCF_LAM_REF_C, mn);
-  ema_update(&r->dip, &r->dip_lo, TCF_LAM_REF_C, dip);
+static TCF_NOINLINE void field_follow(tcf_field_t *r, float c, float mn, float dip) {
+  ema_update(&r->mag, &r->mag_lo, c, mn);
+  ema_update(&r->dip, &r->dip_lo, c, dip);
 }
 
 /* before sample k's deviations: with no reference yet (NaN, or 0 after tcf_features_init; a
@@ -75,11 +75,11 @@ static void mag_reference_start(tcf_features_t *f, float mn, float dip) {
 /* after them (mag_reference_step; dip is finite by construction) */
 static void mag_reference_update(tcf_features_t *f, float mn, float dip, float gn2) {
   int agree = field_agrees(&f->ref, mn, dip);  /* (M2) */
-  if (agree) field_follow(&f->ref, mn, dip);
+  if (agree) field_follow(&f->ref, f->rate.lam_ref_c, mn, dip);
   if (field_agrees(&f->cand, mn, dip)) {  /* (M3) */
-    if (gn2 >= TCF_REF_MIN_GYR_SQ && f->cand_n < TCF_REF_NEW_N) f->cand_n++;
-    field_follow(&f->cand, mn, dip);
-    if (!agree && f->cand_n >= TCF_REF_NEW_N) f->ref = f->cand;  /* a new field becomes the reference */
+    if (gn2 >= TCF_REF_MIN_GYR_SQ && f->cand_n < f->rate.ref_new_n) f->cand_n++;
+    field_follow(&f->cand, f->rate.lam_ref_c, mn, dip);
+    if (!agree && f->cand_n >= f->rate.ref_new_n) f->ref = f->cand;  /* a new field becomes the reference */
   } else {
     field_set(&f->cand, mn, dip);
     f->cand_n = 0u;
@@ -111,7 +111,7 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
     jerk = 0.0f;
   } else {
     float dx = acc[0] - f->prev_acc[0], dy = acc[1] - f->prev_acc[1], dz = acc[2] - f->prev_acc[2];
-    jerk = sqrtf(dx * dx + dy * dy + dz * dz) * TCF_FS;
+    jerk = sqrtf(dx * dx + dy * dy + dz * dz) * f->rate.fs;
   }
   usable = mn > 0.0f && isfinite(mn);  /* a bad or zero-norm sample says nothing about the field */
   if (usable) mag_reference_start(f, mn, dip);
@@ -134,26 +134,27 @@ static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float a
   if (usable) mag_reference_update(f, mn, dip, gn2);
   if (isfinite(an)) {
     if (isfinite(f->acc_lp[0]) && isfinite(f->acc_lp[1]) && isfinite(f->acc_lp[2])) {
-      for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], TCF_LAM_LP_C, acc[i]);
+      for (i = 0; i < 3; ++i) ema_update(&f->acc_lp[i], &f->acc_lp_lo[i], f->rate.lam_lp_c, acc[i]);
     } else {
       for (i = 0; i < 3; ++i) { f->acc_lp[i] = acc[i]; f->acc_lp_lo[i] = 0.0f; }
     }
   }
   /* jerk next to a bad sample is missing, as in togglecf.features */
   f->prev_acc[0] = acc[0]; f->prev_acc[1] = acc[1]; f->prev_acc[2] = acc[2];
-  if (f->n_filled < TCF_WINDOW) f->n_filled++;
-  f->pos = (f->pos + 1u) % TCF_WINDOW;
+  if (f->n_filled < f->rate.window) f->n_filled++;
+  f->pos = (f->pos + 1u) % f->rate.window;
 }
 
 /* Feature row of the window ending at the last pushed sample (window_features): mean, std,
    min, max of ring columns 0-10, mean of column 11, then the 10 *_last values. A column with a
    non-finite value in the window gives NaN (missing) stats, as the numba and vectorised code. */
 static void tcf_window_features(const tcf_features_t *f, float out[TCF_N_FEATURES]) {
-  int c, i, j;
+  int c, j;
+  uint32_t i, L = f->rate.window;
   float e = 0.0f;
   for (c = 0; c < TCF_RING_COLS - 1; ++c) {
     float s = 0.0f, ss = 0.0f, lo = f->ring[0][c], hi = f->ring[0][c], mean;
-    for (i = 0; i < TCF_WINDOW; ++i) {
+    for (i = 0; i < L; ++i) {
       float v = f->ring[i][c];
       s += v;
       if (v < lo) lo = v;
@@ -163,18 +164,18 @@ static void tcf_window_features(const tcf_features_t *f, float out[TCF_N_FEATURE
       out[4 * c] = out[4 * c + 1] = out[4 * c + 2] = out[4 * c + 3] = NAN;
       continue;
     }
-    mean = s / (float)TCF_WINDOW;
-    for (i = 0; i < TCF_WINDOW; ++i) {
+    mean = s / (float)L;
+    for (i = 0; i < L; ++i) {
       float d = f->ring[i][c] - mean;
       ss += d * d;
     }
     out[4 * c] = mean;
-    out[4 * c + 1] = sqrtf(ss / (float)TCF_WINDOW);
+    out[4 * c + 1] = sqrtf(ss / (float)L);
     out[4 * c + 2] = lo;
     out[4 * c + 3] = hi;
   }
-  for (i = 0; i < TCF_WINDOW; ++i) e += f->ring[i][TCF_RING_COLS - 1];
-  out[4 * (TCF_RING_COLS - 1)] = isfinite(e) ? e / (float)TCF_WINDOW : NAN;
+  for (i = 0; i < L; ++i) e += f->ring[i][TCF_RING_COLS - 1];
+  out[4 * (TCF_RING_COLS - 1)] = isfinite(e) ? e / (float)L : NAN;
   for (j = 0; j < TCF_N_LAST; ++j) out[4 * (TCF_RING_COLS - 1) + 1 + j] = f->last[j];
 }
 
@@ -208,19 +209,55 @@ static int tcf_out_of_range(const float feat[TCF_N_FEATURES]) {
 
 /* ------------------------------------------------------------------ API */
 
-void tcf_features_init(tcf_features_t *f) {
-  int j;
-  memset(f, 0, sizeof *f);  /* empty window, low-pass and counters (all-zero bits are 0.0f) */
-  f->ref.mag = f->ref.dip = NAN;  /* no field reference: it starts at the first usable sample (NaN deviations before) */
-  for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
+/* Python's int(round(x)) for 0 <= x < 2^32: half to even on the exact double */
+static uint32_t round_half_even(double x) {
+  uint32_t r = (uint32_t)x;
+  double frac = x - (double)r;  /* exact */
+  if (frac > 0.5 || (frac == 0.5 && (r & 1u))) ++r;
+  return r;
 }
 
-/* inloop_batch, the model part of one sample: push the features; at a window end (every TCF_HOP samples once
+/* max(lo, round(seconds fs)) in double, as togglecf.features.windows (window_length, hop_length,
+   feature_coefficients) */
+static uint32_t samples_of(double seconds, float fs, uint32_t lo) {
+  uint32_t n = round_half_even(seconds * (double)fs);
+  return n > lo ? n : lo;
+}
+
+int tcf_features_rate(float fs, tcf_features_rate_t *r) {
+  uint32_t window;
+  if (!(fs > 0.0f && fs < INFINITY)) return TCF_ERR_RATE;
+  if (fs > (float)TCF_MAX_FS) return TCF_ERR_RATE_MAX;
+  window = samples_of(TCF_WINDOW_S, fs, 2u);
+  if (window > TCF_WINDOW_MAX) return TCF_ERR_RATE_MAX;  /* only if TCF_MAX_FS was edited without TCF_WINDOW_MAX */
+  r->fs = fs;
+  r->window = window;
+  r->hop = samples_of(TCF_HOP_S, fs, 1u);
+  r->ref_new_n = samples_of(TCF_REF_NEW_S, fs, 1u);
+  /* 1 - lambda = -expm1(-1 / (tau fs)): no cancellation (tau fs >> 1) */
+  r->lam_ref_c = -expm1f(-1.0f / ((float)TCF_REF_TAU_S * fs));
+  r->lam_lp_c = -expm1f(-1.0f / ((float)TCF_LP_TAU_S * fs));
+  return TCF_OK;
+}
+
+int tcf_features_init(tcf_features_t *f, float fs) {
+  int j;
+  tcf_features_rate_t r;
+  j = tcf_features_rate(fs, &r);
+  if (j != TCF_OK) return j;
+  memset(f, 0, sizeof *f);  /* empty window, low-pass and counters (all-zero bits are 0.0f) */
+  f->rate = r;
+  f->ref.mag = f->ref.dip = NAN;  /* no field reference: it starts at the first usable sample (NaN deviations before) */
+  for (j = 0; j < TCF_N_PRED; ++j) f->pred[j] = NAN;  /* no prediction before the first full window */
+  return TCF_OK;
+}
+
+/* inloop_batch, the model part of one sample: push the features; at a window end (every rate.hop samples once
    the window is full) check the range, evaluate the trees into f->pred (held until the next one). */
 int tcf_features_push(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   int renewed = 0;
   tcf_push_sample(f, gyr, acc, mag);
-  if (f->n_filled == TCF_WINDOW) {
+  if (f->n_filled == f->rate.window) {
     if (f->hop_phase == 0u) {
       float feat[TCF_N_FEATURES], margin[TCF_N_OUTPUTS];
       int k;
@@ -237,17 +274,17 @@ int tcf_features_push(tcf_features_t *f, const float gyr[3], const float acc[3],
       }
       renewed = 1;
     }
-    f->hop_phase = (f->hop_phase + 1u) % TCF_HOP;
+    f->hop_phase = (f->hop_phase + 1u) % f->rate.hop;
   }
   return renewed;
 }
 
 int tcf_features_row(const tcf_features_t *f, float feat[TCF_N_FEATURES]) {
-  if (f->n_filled < TCF_WINDOW) return 0;
+  if (f->n_filled < f->rate.window) return 0;
   tcf_window_features(f, feat);
   return 1;
 }
 
 int tcf_features_fallback(const tcf_features_t *f) {
-  return (f->n_filled == TCF_WINDOW && isnan(f->pred[0])) ? 1 : 0;
+  return (f->n_filled == f->rate.window && isnan(f->pred[0])) ? 1 : 0;
 }

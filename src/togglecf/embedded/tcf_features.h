@@ -3,9 +3,9 @@
  * tcf_vqf_toggling.c: the VQF core with learned time constants).
  *
  * A port of the model part of togglecf.toggling.inloop.inloop_batch: per sample, the 12 feature
- * channels are pushed into a ring buffer of the last TCF_WINDOW samples
+ * channels are pushed into a ring buffer of the last L samples
  * (togglecf.features.streaming); at every window end (once the window is full, then every
- * TCF_HOP samples) the TCF_N_FEATURES window features are checked against their training range
+ * H samples) the TCF_N_FEATURES window features are checked against their training range
  * (togglecf.learn.ranges: more than TCF_MAX_OUT of the TCF_N_BOUNDED bounded features outside
  * -> no prediction, NaN, the filter's default) and otherwise go through the generated tree
  * ensemble (tcf_forest.c: class margins -> softmax, plus the predicted acc/mag noise eta_a,
@@ -17,11 +17,22 @@
  * follow their default branches) and do not update the references, which start at the
  * first finite sample (the field reference: the first with a finite, non-zero |m|).
  *
+ * Rate at init: tcf_features_init(s, fs) turns the feature settings of tcf_config.h, in
+ * seconds (TCF_WINDOW_S, TCF_HOP_S, TCF_REF_TAU_S, TCF_LP_TAU_S, TCF_REF_NEW_S), into the
+ * per-sample constants at fs [Hz] (tcf_features_rate_t), as
+ * togglecf.features.windows.feature_coefficients does: window L = max(2, round(TCF_WINDOW_S fs)),
+ * hop H = max(1, round(TCF_HOP_S fs)), round(TCF_REF_NEW_S fs) rotating samples (at least 1),
+ * all three with Python's round (half to even) of the double product; EMA gains
+ * 1 - exp(-1 / (tau fs)). The features count samples: they run at the nominal rate fs
+ * (jerk = |delta a| fs), never at a per-sample dt, as the Python features.
+ *
  * Memory: all in tcf_features_t (fixed size, TCF_FEATURES_STATE_BYTES; no heap, no globals
- * written). At a window end tcf_features_push keeps the feature row and the tree outputs on
- * the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats). Configuration: tcf_config.h of the export
- * (TCF_FS, TCF_WINDOW, TCF_HOP, EMA constants, the field-reference gates, TCF_GRAVITY, the
- * feature ranges).
+ * written). The ring holds TCF_WINDOW_MAX rows, the window at the largest supported rate
+ * TCF_MAX_FS [Hz] (tcf_config.h; the export's max_fs): tcf_features_init refuses a higher rate
+ * (TCF_ERR_RATE_MAX); a lower rate uses the first L rows. At a window end tcf_features_push
+ * keeps the feature row and the tree outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS
+ * floats). Configuration: tcf_config.h of the export (feature settings in seconds,
+ * TCF_MAX_FS, TCF_WINDOW_MAX, the field-reference gates, TCF_GRAVITY, the feature ranges).
  *
  * Do not compile with -ffast-math (the NaN tests would be removed).
  */
@@ -53,6 +64,23 @@ extern "C" {
 #define TCF_MAX_OUT 0
 #endif
 
+/* return codes of the init functions (tcf_features_init, tcf_vqft_init) */
+#define TCF_OK 0
+#define TCF_ERR_SETTINGS (-1)  /* the core refuses its settings (tcf_vqf_config.h), or 1/fs > max_dt */
+#define TCF_ERR_RATE (-2)      /* fs not a finite number > 0 */
+#define TCF_ERR_RATE_MAX (-3)  /* fs > TCF_MAX_FS: the window would not fit the ring (re-export with a larger max_fs) */
+
+/* the per-sample constants of the features at the rate of tcf_features_init
+   (togglecf.features.windows.FeatureCoefficients) */
+typedef struct tcf_features_rate {
+  float fs;            /* nominal rate [Hz] (jerk = |delta a| fs) */
+  float lam_ref_c;     /* 1 - exp(-1 / (TCF_REF_TAU_S fs)): gain of the field reference and candidate */
+  float lam_lp_c;      /* 1 - exp(-1 / (TCF_LP_TAU_S fs)): gain of the acc low-pass behind acc_hp */
+  uint32_t window;     /* L = max(2, round(TCF_WINDOW_S fs)) <= TCF_WINDOW_MAX: samples per window */
+  uint32_t hop;        /* H = max(1, round(TCF_HOP_S fs)): samples between window ends */
+  uint32_t ref_new_n;  /* max(1, round(TCF_REF_NEW_S fs)): rotating samples to take a new field */
+} tcf_features_rate_t;
+
 /* a field's |m| [uT] and dip angle [rad], each as hi + lo (compensated EMA, see tcf_features.c) */
 typedef struct tcf_field {
   float mag, mag_lo;
@@ -60,27 +88,33 @@ typedef struct tcf_field {
 } tcf_field_t;
 
 typedef struct tcf_features {
-  float ring[TCF_WINDOW][TCF_RING_COLS];
+  tcf_features_rate_t rate;  /* per-sample constants at the init rate */
+  float ring[TCF_WINDOW_MAX][TCF_RING_COLS];  /* the last rate.window rows are used */
   tcf_field_t ref;     /* reference (r_{k-1}, d_{k-1}) of the undisturbed field */
   tcf_field_t cand;    /* candidate new field */
-  uint32_t cand_n;     /* rotating samples the candidate has agreed with itself (saturates at TCF_REF_NEW_N) */
+  uint32_t cand_n;     /* rotating samples the candidate has agreed with itself (saturates at rate.ref_new_n) */
   float acc_lp[3], acc_lp_lo[3];  /* EMA p_{k-1} of acc [m/s^2], hi + lo */
   float prev_acc[3];   /* previous acc sample (for the jerk; missing next to a bad sample) */
   float last[TCF_N_LAST];  /* the *_last features of the newest sample */
-  uint32_t n_filled;   /* samples in the ring (saturates at TCF_WINDOW) */
+  uint32_t n_filled;   /* samples in the ring (saturates at rate.window) */
   uint32_t pos;        /* ring row of the next sample */
-  uint32_t hop_phase;  /* samples since the last window end, modulo TCF_HOP */
+  uint32_t hop_phase;  /* samples since the last window end, modulo rate.hop */
   /* held prediction (NaN before the first full window, and after a window out of range) */
   float pred[TCF_N_PRED];
 } tcf_features_t;
 
 /* sizeof(tcf_features_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_FEATURES_STATE_BYTES (4 * (27 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_FEATURES_STATE_BYTES (4 * (33 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW_MAX + TCF_N_CLASSES))
 
-/* Reset: empty window, no prediction. */
-void tcf_features_init(tcf_features_t *s);
+/* The per-sample constants at fs [Hz] (see "Rate at init" above) into *r. Returns TCF_OK, or
+   TCF_ERR_RATE / TCF_ERR_RATE_MAX (*r untouched). */
+int tcf_features_rate(float fs, tcf_features_rate_t *r);
 
-/* One sample at TCF_FS (mag: never NULL here; the filters pass zeros without a magnetometer).
+/* Reset at rate fs [Hz]: the per-sample constants (tcf_features_rate), empty window, no
+   prediction. Returns TCF_OK, or TCF_ERR_RATE / TCF_ERR_RATE_MAX (s untouched). */
+int tcf_features_init(tcf_features_t *s, float fs);
+
+/* One sample at the init rate (mag: never NULL here; the filters pass zeros without a magnetometer).
    At a window end the prediction s->pred is renewed (trees, or NaN when out of range);
    returns 1 then, else 0. */
 int tcf_features_push(tcf_features_t *s, const float gyr[3], const float acc[3], const float mag[3]);

@@ -208,13 +208,15 @@ void tcf_filter_init(tcf_filter_t *f) {
     f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
   f->initialised = 0u;
-  tcf_features_init(&f->feat);  /* empty window, no prediction before the first full window */
+  /* empty window, no prediction before the first full window; the features at TCF_FS (the export's
+     TCF_MAX_FS is TCF_FS, so this cannot fail) */
+  (void)tcf_features_init(&f->feat, TCF_FS);
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = 0.0f;
 }
 
-/* inloop_batch, one sample: push the features; at a window end (every TCF_HOP samples once the window is
+/* inloop_batch, one sample: push the features; at a window end (every hop samples once the window is
    full) evaluate the trees into f->feat.pred (held until the next one; NaN when the window is
    out of the training range); then the toggling step. */
 void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {

@@ -2,7 +2,7 @@
  *
  * A port of togglecf.toggling.inloop.inloop_batch (one sample) with the toggling step: the models in the
  * loop (tcf_features.{h,c}, shared with the learned VQF export: streaming features, the range
- * check of the out-of-range fallback, the generated tree ensemble tcf_forest.c every TCF_HOP
+ * check of the out-of-range fallback, the generated tree ensemble tcf_forest.c every hop
  * samples, the prediction held until the next window end), then the toggling step (steps 1-7
  * of togglecf.filters.toggling) updates the orientation.
  *
@@ -20,8 +20,9 @@
  * Reentrant: one tcf_filter_t per sensor.
  *
  * Rate: call tcf_filter_update exactly once per sample at TCF_FS Hz (the rate the models and
- * gains were exported for, see tcf_config.h): window length, hop and the per-sample gains are
- * fixed to it. tcf_filter_update_dt takes another dt for the gyro integration only (lost
+ * gains were exported for, see tcf_config.h): the per-sample gains are fixed to it, and
+ * tcf_filter_init sets the features (window, hop) to it (TCF_MAX_FS = TCF_FS: the ring holds
+ * exactly one window). Unlike the learned VQF (tcf_vqf_toggling.h), whose rate is set at init. tcf_filter_update_dt takes another dt for the gyro integration only (lost
  * samples); the features still count samples.
  *
  * Bad samples (policy of togglecf.filters.base): non-finite or saturated gyro (|w| >= 34.9
@@ -59,7 +60,7 @@ typedef struct tcf_filter {
 } tcf_filter_t;
 
 /* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_STATE_BYTES (4 * (44 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW + TCF_N_CLASSES))
+#define TCF_STATE_BYTES (4 * (50 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW_MAX + TCF_N_CLASSES))
 
 /* Reset: identity orientation, not initialised, empty window, no prediction. */
 void tcf_filter_init(tcf_filter_t *f);

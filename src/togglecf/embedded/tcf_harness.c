@@ -58,11 +58,14 @@ int main(int argc, char **argv) {
   for (s = 0; s < h.n; ++s) {
     const float *r = h.x + 9 * s;
     if (h.px)
-      tcf_filter_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, TCF_DT, h.px + (long)TCF_N_PRED * s);
+      tcf_filter_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt ? h.dt[s] : TCF_DT,
+                             h.px + (long)TCF_N_PRED * s);
+    else if (h.dt)
+      tcf_filter_update_dt(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt[s]);
     else
       tcf_filter_update(&f, r, r + 3, h.no_mag ? NULL : r + 6);
     tcf_filter_quat(&f, h.qo + 4 * s);
-    if (ffeat && !h.px && f.feat.n_filled == TCF_WINDOW && f.feat.hop_phase == 1u % TCF_HOP) {  /* a window end */
+    if (ffeat && !h.px && f.feat.n_filled == f.feat.rate.window && f.feat.hop_phase == 1u % f.feat.rate.hop) {  /* a window end */
       float feat[TCF_N_FEATURES];
       tcf_filter_features(&f, feat);
       fprintf(ffeat, "%ld", s);

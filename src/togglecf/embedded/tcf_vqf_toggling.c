@@ -15,8 +15,8 @@
 #error "tcf_vqf_toggling.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
 #endif
 
-#if !defined(TCF_VQFT_FOLLOW) || !defined(TCF_VQFT_MODULATION_GAIN)
-#error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_GAIN (re-export it)"
+#if !defined(TCF_VQFT_FOLLOW) || !defined(TCF_VQFT_MODULATION_TAU)
+#error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_TAU (re-export it)"
 #endif
 
 #if !defined(TCF_VQFT_BACKOFF_MEASURED)
@@ -118,8 +118,8 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
 static void tcf_vqft_follow(tcf_vqft_t *f) {
   float *w = f->follow;
   tcf_vqf_mod_t m;
-  w[2] += TCF_VQFT_MODULATION_GAIN * (w[0] - w[2]);
-  w[3] += TCF_VQFT_MODULATION_GAIN * (w[1] - w[3]);
+  w[2] += f->follow_gain * (w[0] - w[2]);
+  w[3] += f->follow_gain * (w[1] - w[3]);
   f->tau_acc = expf(w[2]);
   f->tau_mag = expf(w[3]);
   tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);  /* only acc_lp and k_mag are taken (sigma unused) */
@@ -183,11 +183,15 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   tcf_vqf_update_mod(&f->core, gyr, acc, mag, dt, &f->mod);  /* step 5 */
 }
 
-int tcf_vqft_init(tcf_vqft_t *f) {
-  static const tcf_vqf_params_t p = TCF_VQF_PARAMS_INIT;
-  int s;
-  if (tcf_vqf_init(&f->core, &p) != 0) return -1;
-  tcf_features_init(&f->feat);
+int tcf_vqft_init(tcf_vqft_t *f, float fs) {
+  static const tcf_vqf_params_t settings = TCF_VQF_PARAMS_INIT;  /* physical: rate-free */
+  tcf_vqf_params_t p = settings;
+  tcf_features_rate_t r;
+  int s = tcf_features_rate(fs, &r);
+  if (s != TCF_OK) return s;  /* checks fs before the core sees it */
+  p.fs = fs;
+  if (tcf_vqf_init(&f->core, &p) != 0) return TCF_ERR_SETTINGS;
+  tcf_features_init(&f->feat, fs);  /* TCF_OK: the same checks as tcf_features_rate */
   tcf_vqf_base_mod(&f->core, &f->mod);  /* no prediction seen yet: the core's coefficients */
   for (s = 0; s < TCF_N_CLASSES + 6; ++s) f->last_p[s] = NAN;
   f->tau_acc = p.tau_acc;
@@ -197,7 +201,9 @@ int tcf_vqft_init(tcf_vqft_t *f) {
   f->follow[1] = f->follow[3] = TCF_VQFT_LN_TAU_MAG_CORE;
   f->follow[4] = 0.0f;
   f->follow[5] = f->mod.k_mag;
-  return 0;
+  /* gain_from_tau(modulation_tau, Ts) of the Python filter; -expm1f: exact for Ts << tau */
+  f->follow_gain = TCF_VQFT_MODULATION_TAU > 0.0f ? -expm1f(-f->core.c.ts / TCF_VQFT_MODULATION_TAU) : 1.0f;
+  return TCF_OK;
 }
 
 void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
@@ -207,7 +213,7 @@ void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], c
 }
 
 void tcf_vqft_update(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
-  tcf_vqft_update_dt(f, gyr, acc, mag, TCF_DT);
+  tcf_vqft_update_dt(f, gyr, acc, mag, f->core.c.ts);
 }
 
 void tcf_vqft_update_pred(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt,

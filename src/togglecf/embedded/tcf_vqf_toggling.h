@@ -19,10 +19,22 @@
  * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth, earth
  * frame ENU. Units: gyr rad/s, acc m/s^2, mag uT.
  *
+ * Rate at init: tcf_vqft_init(&f, fs) takes the sampling rate fs [Hz] (up to TCF_MAX_FS of
+ * tcf_config.h) and derives every per-sample constant from it and the settings, which are
+ * physical (time constants in seconds), as the Python filter's _coefficients at that rate:
+ * the core's (tcf_vqf_init: Butterworth low-passes of tau_acc, the rest and field filters,
+ * 1 - exp(-Ts/tau) gains, bias noises), the learned modulation's (tcf_vqf_mod_from at each
+ * probability change, with Ts = 1/fs), the followed modulation's gain 1 - exp(-Ts /
+ * modulation_tau), and the features' window, hop and EMA gains (tcf_features.h). Nothing is
+ * fixed to the training rate: one build runs a 100, 200 or 400 Hz IMU.
+ * Per-sample dt: tcf_vqft_update_dt(&f, gyr, acc, mag, dt) integrates the gyro over the actual
+ * dt [s] (as VQFTogglingFilter.update_batch(..., dt=...)); everything else runs at the nominal
+ * rate of init, as in VQF and the Python filter: the low-pass filters and gains, the rest and
+ * magnetic timers, and the features (which count samples). A dt that is not finite, <= 0 or >
+ * max_dt (0.1 s) skips the gyro integration of that sample (lost samples).
+ *
  * Memory: all state in one tcf_vqft_t (fixed size, TCF_VQFT_STATE_BYTES; no heap, no globals
- * written; reentrant: one per sensor). Rate: call tcf_vqft_update once per sample at TCF_FS
- * (tcf_config.h): window, hop and coefficients are fixed to it; tcf_vqft_update_dt takes
- * another dt for the gyro integration only (lost samples).
+ * written; reentrant: one per sensor). Its feature ring is sized for TCF_MAX_FS.
  *
  * Bad samples: the policies of tcf_features.h (features) and tcf_vqf.h (core).
  * Do not compile with -ffast-math (the sources refuse it).
@@ -46,22 +58,27 @@ typedef struct tcf_vqft {
   float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
   float follow[6];  /* target ln tau_acc, ln tau_mag; the followed ones (modulation_tau); the predicted
                        disturbance (|eta_m| / sigma_m)^2; k_mag before the back-off */
+  float follow_gain;  /* 1 - exp(-Ts / modulation_tau) at the init rate (1: at once) */
 } tcf_vqft_t;
 
 /* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,
    the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics, 6 of the
-   followed modulation and the back-off */
-#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (22 + TCF_N_CLASSES))
+   followed modulation and the back-off, its gain */
+#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (23 + TCF_N_CLASSES))
 
-/* Reset: the core's initial state and settings (tcf_vqf_config.h), empty window, no prediction.
-   Returns 0, or -1 if the core refuses the settings (not for an exported configuration). */
-int tcf_vqft_init(tcf_vqft_t *f);
+/* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
+   settings (see "Rate at init"), the core's initial state, empty window, no prediction.
+   Returns TCF_OK (0), or (f untouched) TCF_ERR_RATE (fs not finite and > 0), TCF_ERR_RATE_MAX
+   (fs > TCF_MAX_FS) or TCF_ERR_SETTINGS (1/fs > max_dt, i.e. fs < 10 Hz, or the core refuses
+   the settings of tcf_vqf_config.h). */
+int tcf_vqft_init(tcf_vqft_t *f, float fs);
 
-/* One sample at TCF_FS: gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no magnetometer: the features
-   see zeros, and with TCF_USE_MAG == 0 the core ignores mag anyway). */
+/* One sample at the init rate (dt = 1/fs): gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no
+   magnetometer: the features see zeros, and with TCF_USE_MAG == 0 the core ignores mag anyway). */
 void tcf_vqft_update(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3]);
 
-/* Same with the gyro integration step dt [s]. */
+/* Same with the actual time step dt [s] since the previous sample, for the gyro integration
+   (see "Per-sample dt"). */
 void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt);
 
 /* Steps 1-5 alone with a prediction made elsewhere (VQFTogglingFilter.update with

@@ -1,13 +1,17 @@
 /* tcf_vqf_toggling_harness.c: host program that runs the exported learned VQF filter
  * (tcf_vqf_toggling.c) over a CSV file (C99).
  *
- *   tcf_vqf_toggling_harness [--no-mag] [--diag] [--time] [--pred pred.csv] in.csv out.csv
+ *   tcf_vqf_toggling_harness [--fs HZ] [--no-mag] [--diag] [--time] [--pred pred.csv] in.csv out.csv
  *
- * in.csv: the format of tcf_harness.c: a header line, then one row per sample at TCF_FS Hz
+ * in.csv: the format of tcf_harness.c: a header line, then one row per sample at the rate --fs
+ *   (default TCF_DEFAULT_FS of tcf_config.h)
  *   gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z   (rad/s, m/s^2, uT)
- * or only the six gyr/acc columns (mag = NULL). An empty field, "nan" or "inf" makes a bad sample.
+ * or only the six gyr/acc columns (mag = NULL), either optionally with a last column dt [s]: the
+ * time step of each sample (tcf_vqft_update_dt; without it tcf_vqft_update, dt = 1 / fs).
+ * An empty field, "nan" or "inf" makes a bad sample.
  * out.csv: a header line, then w,x,y,z per sample (sensor -> ENU).
  * Options:
+ *   --fs HZ    the rate passed to tcf_vqft_init (an error above TCF_MAX_FS);
  *   --no-mag   pass mag = NULL even when the file has mag columns;
  *   --diag     add the held prediction (p_<class>..., eta_acc_xyz, eta_mag_xyz), tau_acc, tau_mag,
  *              trust (lambda), fallback (1: the held window was out of the training range), rest
@@ -29,6 +33,9 @@
 static const char *const class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
 
 int main(int argc, char **argv) {
+  const char *fs_arg = NULL;
+  const tcf_csv_option_t fs_opt = {"--fs", NULL, &fs_arg};
+  float fs = (float)TCF_DEFAULT_FS;
   int status;
   long s;
   tcf_csv_learned_t h;
@@ -36,19 +43,25 @@ int main(int argc, char **argv) {
   clock_t t0, t1;
 
   h.n_diag = N_DIAG;
-  status = tcf_csv_learned_begin(PROG, argc, argv, NULL, 0, "[--no-mag] [--diag] [--time] [--pred pred.csv] in.csv "
-                                 "out.csv", (double)TCF_FS, TCF_N_PRED, &h);
+  status = tcf_csv_learned_begin(PROG, argc, argv, &fs_opt, 1, "[--fs HZ] [--no-mag] [--diag] [--time] [--pred "
+                                 "pred.csv] in.csv out.csv", (double)TCF_DEFAULT_FS, TCF_N_PRED, &h);
   if (status) return status;
-  if (tcf_vqft_init(&f) != 0) {
+  if (fs_arg) fs = strtof(fs_arg, NULL);
+  status = tcf_vqft_init(&f, fs);
+  if (status != TCF_OK) {
     tcf_csv_learned_free(&h);
-    fprintf(stderr, PROG ": the core refused the settings of tcf_vqf_config.h\n");
+    fprintf(stderr, PROG ": tcf_vqft_init(fs = %g Hz) returned %d (%s)\n", (double)fs, status,
+            status == TCF_ERR_RATE_MAX ? "above TCF_MAX_FS" : status == TCF_ERR_RATE ? "not a rate" : "settings");
     return 1;
   }
   t0 = clock();
   for (s = 0; s < h.n; ++s) {
     const float *r = h.x + 9 * s;
     if (h.px)
-      tcf_vqft_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, TCF_DT, h.px + (long)TCF_N_PRED * s);
+      tcf_vqft_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt ? h.dt[s] : f.core.c.ts,
+                           h.px + (long)TCF_N_PRED * s);
+    else if (h.dt)
+      tcf_vqft_update_dt(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt[s]);
     else
       tcf_vqft_update(&f, r, r + 3, h.no_mag ? NULL : r + 6);
     tcf_vqft_quat(&f, h.qo + 4 * s);

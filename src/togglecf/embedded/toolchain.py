@@ -322,11 +322,13 @@ def run_csv_harness(exe, gyr, acc, mag=None, *, dt=None, float32: bool = False, 
 
 
 def run_prediction_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False,
-                           predictions=None):
+                           predictions=None, fs=None, dt=None):
     """``run_csv_harness`` for a learned filter's harness (``tcf_harness``,
-    ``tcf_vqf_toggling_harness``: the same command line); ``no_mag``: NULL although mag is given."""
-    return run_csv_harness(exe, gyr, acc, mag, flags=["--no-mag"] if no_mag else [], predictions=predictions,
-                           diagnostics=diagnostics)
+    ``tcf_vqf_toggling_harness``: the same command line); ``no_mag``: NULL although mag is given;
+    ``fs`` [Hz]: ``--fs`` (the rate of a harness that takes one at init); ``dt`` [s]: the time-step
+    column (scalar or ``(N,)``)."""
+    flags = (["--no-mag"] if no_mag else []) + ([] if fs is None else ["--fs", repr(float(fs))])
+    return run_csv_harness(exe, gyr, acc, mag, dt=dt, flags=flags, predictions=predictions, diagnostics=diagnostics)
 
 
 def write_imu_csv(path, gyr, acc, mag=None, dt=None, float32: bool = False) -> int:

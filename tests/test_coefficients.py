@@ -167,7 +167,7 @@ def test_toggling_coefficients():
                        output_tau=0.002907, bias_tau=3.498, bias_gate=0.04, mag_disturbance_scale=5.0,
                        noise_weight_acc=0.6, noise_weight_mag=0.4, use_mag=False)
     p, ts = f.params, 1.0 / FS
-    assert (p.use_mag, p.n_states, p.static_index) == (0.0, 3, 1)
+    assert (p.use_mag, p.layout.n_states, p.layout.size, p.static_index) == (0.0, 3, 9, 1)
     assert np.array_equal(p.alpha_acc, [gain(t, ts) for t in ta]) and np.array_equal(p.alpha_mag, [gain(t, ts) for t in tm])
     assert (p.gamma, p.bias_gain) == (gain(0.002907, ts), gain(3.498, ts))
     # the former per-sample values at 285.714 Hz

@@ -5,7 +5,8 @@ The VQF core (``filters.vqf_core``) runs unchanged; per sample, the predictions
 acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulation``):
 
 1. confidence      c = max_s p_s / Σ_s p_s;   λ = clip((c − c₀) / (1 − c₀), 0, 1)
-   (``confidence_floor`` c₀: at or below it the learned values are not trusted at all)
+   (``confidence_floor`` c₀: at or below it the learned values are not trusted at all; the rule,
+   and how it differs from the toggling CF's hard switch, is in ``filters.prediction``)
 2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag,
    the motion-bias standard deviation σ_motion and the rest thresholds th_ω, th_a (a geometric
    blend: the probabilities mix rates, not seconds); each per-state value is bounded
@@ -41,7 +42,15 @@ from numba import njit
 
 from togglecf.core.quaternion import rotate_scalar
 from togglecf.filters.base import record_fields, state_record
-from togglecf.filters.toggling import N_PRED_NOISE, PredictionDrivenFilter
+from togglecf.filters.prediction import (
+    PredictionLayout,
+    back_off,
+    blend_trust,
+    class_evidence,
+    predicted_disturbance,
+    remove_noise,
+)
+from togglecf.filters.toggling import PredictionDrivenFilter
 from togglecf.filters.vqf_core import (
     CORE_STATE_FIELDS,
     CoreModulation,
@@ -152,7 +161,7 @@ class VQFTogglingSettings(VQFCoreSettings):
 #: the core's coefficients, then the learned ones (logarithms of the per-state values, rad for σ)
 VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
     *get_type_hints(VQFCoreCoefficients).items(),
-    ("n_states", int), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
+    ("layout", PredictionLayout), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
     ("ln_rest_th_gyr", np.ndarray), ("ln_rest_th_acc", np.ndarray),
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
     ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
@@ -165,7 +174,7 @@ VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
 STATE_FIELDS = CORE_STATE_FIELDS + (
     ("mod", record_fields(CoreModulation, "mod_")),
     ("tau_acc_now", "tau_acc_now"), ("tau_mag_now", "tau_mag_now"), ("trust_now", "trust_now"),
-    ("last_p", tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE))),
+    ("last_p", tuple(f"last_p{s}" for s in range(PredictionLayout.of(MAX_STATES).size))),
     ("ln_tau_acc_target", "ln_tau_acc_target"), ("ln_tau_mag_target", "ln_tau_mag_target"),
     ("ln_tau_acc_now", "ln_tau_acc_now"), ("ln_tau_mag_now", "ln_tau_mag_now"),
     ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"))
@@ -188,26 +197,16 @@ def _prediction_changed(st, pred, n):
 def modulate(st, p, pred):
     """Steps 1–3: blend the per-state values with the probabilities in ``pred`` and store the
     resulting ``CoreModulation`` (and the prediction) in the state record. Returns (τ_acc, τ_mag, λ)."""
-    ns = p.n_states
-    total = 0.0
-    top = 0.0
-    ok = True
-    for s in range(ns + N_PRED_NOISE):
+    layout = p.layout
+    for s in range(layout.size):
         st.last_p[s] = pred[s]
-    for s in range(ns):
-        v = pred[s]
-        if not (v >= 0.0 and v < math.inf):
-            ok = False
-        else:
-            total += v
-            top = max(top, v)
-    lam = 0.0
+    valid, top, total = class_evidence(layout, pred)  # step 1 (filters.prediction)
+    lam = blend_trust(valid, top, total, p.confidence_floor)  # the learned VQF's fallback rule: λ = 0, the core
     la, lm, ls = p.ln_tau_acc_core, p.ln_tau_mag_core, p.ln_sigma_motion_core
     lg, lc = p.ln_rest_th_gyr_core, p.ln_rest_th_acc_core
-    if ok and total > 0.0:  # step 1
-        lam = min(max((top / total - p.confidence_floor) / (1.0 - p.confidence_floor), 0.0), 1.0)
+    if valid:
         ma, mm, msg, mg, mc = 0.0, 0.0, 0.0, 0.0, 0.0
-        for s in range(ns):  # step 2
+        for s in range(layout.n_states):  # step 2
             w = pred[s] / total
             ma += w * p.ln_tau_acc[s]
             mm += w * p.ln_tau_mag[s]
@@ -223,10 +222,7 @@ def modulate(st, p, pred):
     w_motion = bias_noise_w(math.exp(ls), p.bias_v)  # step 3
     e_pred = 0.0  # the predicted disturbance (|η̂_m| / σ_m)² (no prediction: NaN, none)
     if p.mag_disturbance_scale > 0.0:
-        e0, e1, e2 = pred[ns + 3], pred[ns + 4], pred[ns + 5]
-        e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
-        if e >= 0.0:  # False for NaN
-            e_pred = e
+        e_pred = predicted_disturbance(layout, pred, p.mag_disturbance_scale)
     m = st.mod
     if p.modulation_gain >= 1.0:  # else τ_acc's low-pass and k_mag follow (_follow, _heading_gain)
         acc_lp = lp_coefficients(tau_acc, p.ts)
@@ -291,7 +287,7 @@ def _heading_gain(st, p, mag):
     if p.mag_backoff_measured > 0.5 and e > 0.0:
         e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
     st.mag_backoff = 1.0 + e
-    st.mod.k_mag = gain_from_tau(st.tau_mag_now, p.ts) / (1.0 + e)
+    st.mod.k_mag = back_off(gain_from_tau(st.tau_mag_now, p.ts), e)
 
 
 @njit(cache=True)
@@ -300,8 +296,8 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     the trust λ in the learned values (0: fallback to the core)."""
     p = params
     st = state.view(VQFT_STATE)[0]
-    ns = p.n_states
-    if _prediction_changed(st, pred, ns + (N_PRED_NOISE if p.mag_disturbance_scale > 0.0 else 0)):
+    layout = p.layout
+    if _prediction_changed(st, pred, layout.size if p.mag_disturbance_scale > 0.0 else layout.n_states):
         tau_acc, tau_mag, lam = modulate(st, p, pred)
         st.trust_now = lam
         if p.modulation_gain >= 1.0:
@@ -310,17 +306,8 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
         _follow(st, p)
     if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0:
         _heading_gain(st, p, mag)
-    eta_ok = True
-    for j in range(N_PRED_NOISE):
-        if not math.isfinite(pred[ns + j]):
-            eta_ok = False
-    if eta_ok:  # step 4
-        w_a, w_m = p.noise_weight_acc, p.noise_weight_mag
-        a_d = (acc[0] - w_a * pred[ns], acc[1] - w_a * pred[ns + 1], acc[2] - w_a * pred[ns + 2])
-        m_d = (mag[0] - w_m * pred[ns + 3], mag[1] - w_m * pred[ns + 4], mag[2] - w_m * pred[ns + 5])
-    else:
-        a_d = (acc[0], acc[1], acc[2])
-        m_d = (mag[0], mag[1], mag[2])
+    # step 4, the learned VQF's rule (filters.prediction): whenever η̂ is finite
+    _, a_d, m_d = remove_noise(layout, pred, acc, mag, p.noise_weight_acc, p.noise_weight_mag, True)
     core_update(st, p, st.mod, gyr, a_d, m_d, dt, diag)  # step 5
     diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = st.tau_acc_now, st.tau_mag_now, st.trust_now
 
@@ -343,7 +330,7 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
     def _coefficients(self) -> dict:
         s = self.settings
         core = super()._coefficients()
-        return {**core, "n_states": len(s.states), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
+        return {**core, "layout": PredictionLayout.of(len(s.states)), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
                 "ln_tau_mag": np.log(np.array(s.tau_mag_states)),
                 "ln_sigma_motion": np.log(np.array(s.bias_sigma_motion_states) * _DEG),
                 "ln_rest_th_gyr": np.log(np.array(s.rest_th_gyr_states) * _DEG),

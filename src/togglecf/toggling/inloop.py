@@ -11,7 +11,8 @@ from numba import njit
 from togglecf.features.streaming import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features
 from togglecf.features.windows import hop_length
 from togglecf.filters.base import FilterOutput
-from togglecf.filters.toggling import N_PRED_NOISE, TogglingFilter
+from togglecf.filters.prediction import PredictionLayout
+from togglecf.filters.toggling import TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.ranges import window_out_of_range
@@ -24,7 +25,7 @@ __all__ = ["InLoopModels", "ModelTogglingFilter", "ModelVQFTogglingFilter", "hop
 # cache=False as filters.base.run_batch: numba cannot cache a function that takes another compiled
 # function as an argument (pickling the dispatcher type fails: "underlying object has vanished")
 @njit(cache=False)
-def hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range, fallback):
+def hop_predict(ring, aux, layout, predict, forest, feat, margin, pred, low, high, max_out_of_range, fallback):
     """At a window end: the window's features, then either ``pred`` from the trees (``predict(feat,
     *forest, margin)``: ``learn.trees.predict_margin_row_complete`` with ``CompleteForest.arrays()``,
     or ``predict_margin_row`` with ``FlatForest.arrays()``; softmax over the class margins) and
@@ -38,20 +39,20 @@ def hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, 
     fallback[0] = 0.0
     predict(feat, *forest, margin)
     mx = margin[0]
-    for s in range(1, n_classes):
+    for s in range(1, layout.n_states):
         mx = max(mx, margin[s])
     tot = 0.0
-    for s in range(n_classes):
+    for s in range(layout.n_states):
         pred[s] = math.exp(margin[s] - mx)  # softmax of the class margins
         tot += pred[s]
-    for s in range(n_classes):
+    for s in range(layout.n_states):
         pred[s] /= tot
-    for j in range(N_PRED_NOISE):
-        pred[n_classes + j] = margin[n_classes + j]
+    for j in range(layout.eta_acc_index, layout.size):  # η̂_a, η̂_m: the regressors' margins as they are
+        pred[j] = margin[j]
 
 
 @njit(cache=False)
-def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, n_classes, predict, forest,
+def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, last_src, hop, layout, predict, forest,
                  feat, margin, pred, low, high, max_out_of_range, fallback, quat_out, diag_out, pred_out, fallback_out):
     """The models in the loop, per sample: push the features (``push_sample``); at a window end (every
     ``hop`` samples once the window is full) ``hop_predict`` updates ``pred`` (held until the next hop)
@@ -75,7 +76,7 @@ def inloop_batch(step, state, params, gyr, acc, mag, dt, ring, aux, fparams, las
         push_sample(ring, aux, fparams, last_src, g, a, m)
         if done + i + 1 == next_end:
             next_end += hop
-            hop_predict(ring, aux, n_classes, predict, forest, feat, margin, pred, low, high, max_out_of_range,
+            hop_predict(ring, aux, layout, predict, forest, feat, margin, pred, low, high, max_out_of_range,
                         fallback)
         for j in range(diag.shape[0]):
             diag[j] = 0.0  # as a fresh row of diag_out: a step need not write every entry
@@ -121,11 +122,11 @@ class InLoopModels:
         if tuple(self.settings.states) != models.class_names:
             raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
         self.models = models
-        k = len(models.class_names)
-        s = self.settings
-        # η̂_m enters the noise removal (weight w_m) and the toggling CF's disturbance scaling (σ_m > 0), in 9D only
-        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or getattr(s, "mag_disturbance_scale", 0.0) > 0.0)
-        unused = [k + j for j in range(3) if s.noise_weight_acc == 0.0] + [k + 3 + j for j in range(3) if not mag_needed]
+        s, layout = self.settings, self.layout
+        # η̂_m enters the noise removal (weight w_m) and the disturbance back-off (σ_m > 0), in 9D only
+        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
+        unused = ((layout.outputs(layout.eta_acc) if s.noise_weight_acc == 0.0 else [])
+                  + (layout.outputs(layout.eta_mag) if not mag_needed else []))
         # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
         self.forest = models.forest.without_outputs(unused) if unused else models.forest
         self._features = StreamingFeatures(self.fs, models.feature_settings)
@@ -187,7 +188,7 @@ class InLoopModels:
 
     def _model_args(self):
         return (self._features.ring, self._features.aux, self._features.params, self._features.last_src, self.hop,
-                len(self.models.class_names), self._predict, self._forest_arrays, self._feat, self._margin, self.pred,
+                self.layout, self._predict, self._forest_arrays, self._feat, self._margin, self.pred,
                 self.models.feature_low, self.models.feature_high, self.models.max_out_of_range, self.fallback)
 
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
@@ -212,7 +213,7 @@ class InLoopModels:
         if n:
             self._diag[:] = diag_out[-1]
         diags = {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)}
-        names = [f"p_{s}" for s in self.models.class_names] + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
+        names = self.layout.names(self.models.class_names)
         diags.update({k: pred_out[:, i] for i, k in enumerate(names)})
         diags["fallback"] = fallback_out
         return FilterOutput(quat_out, diags)

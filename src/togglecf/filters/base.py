@@ -11,9 +11,9 @@ shared compiled loop ``run_batch``, so both give bit-identical results.
 
 State layout: ``state[0:4]`` the orientation quaternion (sensor -> ENU, ``[w,x,y,z]``),
 ``state[4]`` 1.0 once initialised from the first valid acc(/mag) sample, ``state[5:]``
-filter specific. A kernel may read the whole vector as a named record, ``state.view(dtype)[0]``
-(fields by name in numba, no offsets): ``state_record`` builds that numpy structured dtype and
-the flat ``state_names`` from one list of fields.
+filter specific. A kernel may read the whole vector as a named record (fields by name in numba,
+no offsets): ``state_record`` builds that numpy structured dtype and the flat ``state_names`` from
+one list of fields, ``record_view`` the numba function that reads the flat vector as that record.
 
 Coefficients: ``params`` is a named record, the filter class's ``Coefficients`` (a
 ``typing.NamedTuple``, which numba compiles to a struct: ``params.alpha`` costs the same as
@@ -43,8 +43,10 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import ClassVar, NamedTuple, get_type_hints
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 from togglecf.core.quaternion import (
     from_acc_mag_scalar,
@@ -64,6 +66,7 @@ __all__ = [
     "dt_from_timestamps",
     "make_coefficients",
     "record_fields",
+    "record_view",
     "run_batch",
     "state_record",
 ]
@@ -171,6 +174,26 @@ def state_record(fields) -> tuple[np.dtype, tuple[str, ...]]:
     dtype, names = _record_layout(_COMMON_STATE_FIELDS + tuple(fields))
     dtype = np.dtype(dtype)
     return dtype, tuple(names[N_COMMON_STATE:])
+
+
+def record_view(dtype: np.dtype):
+    """A numba function ``view(state) -> record``: the flat float64 ``state`` ``(n,)`` read as one
+    record of the structured ``dtype`` (``state_record``), in place (writes go to ``state``). The
+    same as ``state.view(dtype)[0]`` without the new array and its reference count per call (30 ns
+    per sample, a tenth of the VQF core). Unchecked: ``state`` must be C-contiguous and hold at
+    least ``dtype.itemsize`` bytes, as a filter's state does (``OrientationFilter``)."""
+    record = numba.from_dtype(dtype)
+
+    @intrinsic
+    def view(typingctx, state):
+        if not (isinstance(state, types.Array) and state.dtype == types.float64 and state.ndim == 1):
+            return None
+
+        def codegen(context, builder, signature, args):
+            data = context.make_array(signature.args[0])(context, builder, args[0]).data
+            return builder.bitcast(data, context.get_value_type(record))
+        return record(state), codegen
+    return view
 
 
 def record_fields(record: type, prefix: str) -> list:

@@ -80,6 +80,7 @@ from togglecf.filters.timeconst import gain
 
 __all__ = [
     "PredictionDrivenFilter",
+    "prediction_step_of",
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
@@ -279,12 +280,39 @@ def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, 
         quat_out[i, 3] = state[3]
 
 
+#: ``Coefficients`` record -> the step of the prediction-driven filters that use it (``prediction_step_of``)
+_STEPS: dict = {}
+
+
+def prediction_step_of(record: type):
+    """The step (numba dispatcher) of the prediction-driven filters whose ``Coefficients`` is
+    ``record``: what a compiled loop calls for a ``params`` of that type (``toggling.inloop``)."""
+    if record not in _STEPS:
+        raise TypeError(f"no prediction-driven filter has the coefficients {record.__qualname__}")
+    return _STEPS[record]
+
+
 class PredictionDrivenFilter(OrientationFilter):
     """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
     acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
     probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
-    m/s² and µT). ``update``/``update_batch`` take the predictions beside the IMU samples; with
-    none given, ``_default_pred`` stands in ("no model")."""
+    m/s² and µT; ``filters.prediction``). ``update``/``update_batch`` take the predictions beside
+    the IMU samples; with none given, ``_default_pred`` stands in ("no model"). Each subclass's
+    step is registered under its ``Coefficients`` (``prediction_step_of``)."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.step is not None:
+            known = _STEPS.setdefault(cls.Coefficients, cls.step)
+            if known is not cls.step:
+                raise TypeError(f"{cls.__name__}: its Coefficients {cls.Coefficients.__qualname__} belong to another step")
+
+    @classmethod
+    def settings_for(cls, class_names, rest_state: str, **overrides):
+        """Settings for a model whose classes are ``class_names`` (its rest class ``rest_state``), as
+        ``states``, built in one go so that per-state defaults match their number; ``overrides``
+        replace fields (``states`` too)."""
+        return cls.Settings(**{"states": tuple(class_names), **overrides})
 
     @property
     def layout(self) -> PredictionLayout:
@@ -335,6 +363,11 @@ class TogglingFilter(PredictionDrivenFilter):
     state_names = _STATE
     diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm", "low_confidence")
     step = toggle_step
+
+    @classmethod
+    def settings_for(cls, class_names, rest_state: str, **overrides):
+        """``PredictionDrivenFilter.settings_for``; the gyro bias is learned in ``rest_state``."""
+        return super().settings_for(class_names, rest_state, **{"static_state": rest_state, **overrides})
 
     def _coefficients(self) -> dict:
         s = self.settings

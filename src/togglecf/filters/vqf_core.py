@@ -94,6 +94,7 @@ from togglecf.filters.base import (
     OrientationFilter,
     dt_valid,
     gyro_valid,
+    record_view,
     state_record,
     vector_ok,
 )
@@ -334,6 +335,7 @@ CORE_STATE_FIELDS = (
     ("mag_nd_lp", _bank("mag_nd_lp", ("norm", "dip"))),
 )
 CORE_STATE, _STATE_NAMES = state_record(CORE_STATE_FIELDS)
+_core_state = record_view(CORE_STATE)
 
 _DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
 
@@ -678,7 +680,7 @@ def core_update(st, p, mod, gyr, acc, mag, dt, diag):
 def vqf_core_step(state, params, gyr, acc, mag, dt, diag):
     """One sample of the VQF core (module docstring) on the flat ``state`` (read as the record
     ``CORE_STATE``). diag: see ``VQFCoreFilter.diagnostic_names``."""
-    core_update(state.view(CORE_STATE)[0], params, params.modulation, gyr, acc, mag, dt, diag)
+    core_update(_core_state(state), params, params.modulation, gyr, acc, mag, dt, diag)
 
 
 class VQFCoreFilter(OrientationFilter):

@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from togglecf.core.quaternion import rotate_scalar
-from togglecf.filters.base import record_fields, state_record
+from togglecf.filters.base import record_fields, record_view, state_record
 from togglecf.filters.prediction import (
     PredictionLayout,
     back_off,
@@ -179,6 +179,7 @@ STATE_FIELDS = CORE_STATE_FIELDS + (
     ("ln_tau_acc_now", "ln_tau_acc_now"), ("ln_tau_mag_now", "ln_tau_mag_now"),
     ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"))
 VQFT_STATE, _STATE_NAMES = state_record(STATE_FIELDS)
+_vqft_state = record_view(VQFT_STATE)
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
 N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
 
@@ -295,7 +296,7 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1–5). diag: the core's, then τ_acc [s], τ_mag [s] and
     the trust λ in the learned values (0: fallback to the core)."""
     p = params
-    st = state.view(VQFT_STATE)[0]
+    st = _vqft_state(state)
     layout = p.layout
     if _prediction_changed(st, pred, layout.size if p.mag_disturbance_scale > 0.0 else layout.n_states):
         tau_acc, tau_mag, lam = modulate(st, p, pred)

@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 
 from togglecf.core import quaternion as quat
-from togglecf.filters.prediction import PredictionLayout
+from togglecf.filters.prediction import (
+    LEARNED,
+    LOW_CONFIDENCE,
+    NO_PREDICTION,
+    PredictionLayout,
+    blend_trust,
+    class_evidence,
+    switch_status,
+)
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.simulate import axis_sweep_trajectory, imu_from_orientation, static_trajectory
 
@@ -213,8 +221,6 @@ def test_noise_weights_scale_the_removed_noise():
 def test_prediction_layout_and_the_two_fallback_rules():
     """The row layout names its parts; the toggling CF's hard switch and the learned VQF's trust ramp
     (filters.prediction) agree on what is valid and differ where the docstring says."""
-    from togglecf.filters.prediction import LEARNED, LOW_CONFIDENCE, NO_PREDICTION, blend_trust, class_evidence, switch_status
-
     layout = PredictionLayout.of(4)
     assert (layout.n_states, layout.eta_acc_index, layout.eta_mag_index, layout.size) == (4, 4, 7, 10)
     row = np.arange(10.0)

@@ -10,7 +10,9 @@ Frames (ENU earth, quaternions sensor -> frame, ``[w, x, y, z]``, Hamilton):
 ς sensor, I almost-inertial frame of pure strapdown integration, εᵢ 6D earth frame (heading
 drifts), ε 9D earth frame. State: ``q_gyr`` (ς -> I), ``q_acc`` (I -> εᵢ), heading offset δ.
 
-Per sample (gyro, then acc, then mag, as VQF):
+Per sample (gyro, then acc, then mag, as VQF; ``update_gyr``, ``update_acc``, ``update_bias``,
+``update_mag``, ``update_output``, composed by ``core_update``, over the named state record
+``CORE_STATE`` and the coefficients ``VQFCoreCoefficients``):
 
 Gyroscope
   (R1) rest LP:  ω̄ = LP₂(ω; τ_rest);  rest candidate while ‖ω − ω̄‖² < th_ω² and every
@@ -66,9 +68,9 @@ Magnetometer (9D)
 
 Second-order Butterworth LP₂(·; τ): cut-off f_c = √2/(2πτ), bilinear transform with
 pre-warping, C = tan(π f_c Ts): b₀ = b₂ = C²/D, b₁ = 2b₀, a₁ = 2(C² − 1)/D, a₂ = (1 − √2C + C²)/D,
-D = 1 + √2C + C², run in a "delta" form (``_lp_bank``, coefficients ``LowPass``: level and increment, the same transfer
-function as VQF's direct form II transposed, whose state would kick the output when the learned
-filter changes τ_acc). To not depend on the first sample, each filter outputs the running mean of
+D = 1 + √2C + C², run in a "delta" form (``_lp_bank`` with the pair ``LowPass`` (4 b₀, a₂): level
+and increment, the same transfer function as VQF's direct form II transposed, whose state would
+kick the output when the learned filter changes τ_acc). To not depend on the first sample, each filter outputs the running mean of
 its inputs for its first τ seconds and then starts in the steady state of that mean.
 
 Bad samples (policy of ``filters.base``): a non-finite/saturated gyro or an invalid Δt skips

@@ -65,7 +65,8 @@ class CompiledModels:
         self.static_state = next((c for c in ("rest", "static") if c in self.class_names), self.class_names[0])
         self.layout = PredictionLayout.of(len(self.class_names))
         if forest.n_outputs != self.layout.size:
-            raise ValueError(f"forest has {forest.n_outputs} outputs, expected {len(self.class_names)} classes + 6")
+            raise ValueError(f"forest has {forest.n_outputs} outputs, expected {self.layout.size}: "
+                             f"{len(self.class_names)} class probabilities, η̂_a and η̂_m (filters.prediction)")
 
     @classmethod
     def from_bundle(cls, bundle) -> "CompiledModels":

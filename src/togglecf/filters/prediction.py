@@ -155,8 +155,8 @@ def blend_trust(valid, top, total, floor):
 def noise_finite(layout, row):
     """True when η̂_a and η̂_m are all finite."""
     ok = True
-    for j in range(layout.eta_acc_index, layout.size):
-        if not math.isfinite(row[j]):
+    for j in range(N_PRED_NOISE):
+        if not math.isfinite(row[layout.eta_acc_index + j]):
             ok = False
     return ok
 

@@ -367,8 +367,9 @@ def _lp_bank(bank, xs, c, tau, ts):
     s = bank.s
     ys = xs
     if bank.ready > 0.5:
+        decay, k = c.decay, c.k  # read once: c may be a record in the same memory as s
         for ch in range(len(xs)):
-            dv = c.decay * s[ch, 1] + c.k * (xs[ch] - s[ch, 0])  # (1 − β) = a2
+            dv = decay * s[ch, 1] + k * (xs[ch] - s[ch, 0])  # (1 − β) = a2
             ys = tuple_setitem(ys, ch, s[ch, 0] + 0.25 * (dv - s[ch, 1]))
             s[ch, 0] += dv
             s[ch, 1] = dv

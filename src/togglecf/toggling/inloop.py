@@ -100,7 +100,7 @@ def walk_forest(forest, feat, margin):
     raise TypeError("walk_forest runs in compiled code only")
 
 
-@overload(walk_forest)
+@overload(walk_forest, inline="always")
 def _walk_forest_typed(forest, feat, margin):
     if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is CompleteWalk:
         return lambda forest, feat, margin: predict_margin_row_complete(feat, *forest.arrays, margin)
@@ -115,7 +115,7 @@ def filter_step(state, params, gyr, acc, mag, dt, pred, diag):
     raise TypeError("filter_step runs in compiled code only")
 
 
-@overload(filter_step)
+@overload(filter_step, inline="always")
 def _filter_step_typed(state, params, gyr, acc, mag, dt, pred, diag):
     if not isinstance(params, types.BaseNamedTuple):
         return None

@@ -72,13 +72,24 @@ def test_params_is_the_filters_coefficients_record(name, use_mag):
     assert f.params.use_mag == (1.0 if use_mag else 0.0)
     assert f.params.max_dt == 0.05
     assert set(f._coefficients()) == set(rec._fields[2:])
+    _check_declared_types(rec, f.params)
+
+
+def _check_declared_types(rec, params):
+    """Every value has its field's declared type (nested records checked likewise), so one compiled
+    kernel per filter."""
     hints = get_type_hints(rec)
-    for field, value in zip(rec._fields, f.params):  # declared types, so one compiled kernel per filter
-        assert hints[field] in (float, int, np.ndarray), field
-        if hints[field] is np.ndarray:
+    for field, value in zip(rec._fields, params):
+        kind = hints[field]
+        if isinstance(kind, type) and issubclass(kind, tuple) and hasattr(kind, "_fields"):  # a nested record
+            assert type(value) is kind, (field, value)
+            _check_declared_types(kind, value)
+            continue
+        assert kind in (float, int, np.ndarray), field
+        if kind is np.ndarray:
             assert isinstance(value, np.ndarray) and value.dtype == np.float64 and value.flags.c_contiguous
         else:
-            assert type(value) is hints[field], (field, value)
+            assert type(value) is kind, (field, value)
 
 
 def test_values_are_converted_to_the_declared_types():
@@ -156,7 +167,7 @@ def test_toggling_coefficients():
                        output_tau=0.002907, bias_tau=3.498, bias_gate=0.04, mag_disturbance_scale=5.0,
                        noise_weight_acc=0.6, noise_weight_mag=0.4, use_mag=False)
     p, ts = f.params, 1.0 / FS
-    assert (p.use_mag, p.n_states, p.static_index) == (0.0, 3, 1)
+    assert (p.use_mag, p.layout.n_states, p.layout.size, p.static_index) == (0.0, 3, 9, 1)
     assert np.array_equal(p.alpha_acc, [gain(t, ts) for t in ta]) and np.array_equal(p.alpha_mag, [gain(t, ts) for t in tm])
     assert (p.gamma, p.bias_gain) == (gain(0.002907, ts), gain(3.498, ts))
     # the former per-sample values at 285.714 Hz
@@ -198,4 +209,4 @@ def test_filters_with_coefficient_records_pickle(name):
     f = CLASSES[name](FS)
     g = pickle.loads(pickle.dumps(f))
     assert type(g.params) is type(f.params)
-    assert all(np.array_equal(a, b) for a, b in zip(g.params, f.params))
+    assert all(np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b for a, b in zip(g.params, f.params))

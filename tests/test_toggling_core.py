@@ -4,6 +4,15 @@ import numpy as np
 import pytest
 
 from togglecf.core import quaternion as quat
+from togglecf.filters.prediction import (
+    LEARNED,
+    LOW_CONFIDENCE,
+    NO_PREDICTION,
+    PredictionLayout,
+    blend_trust,
+    class_evidence,
+    switch_status,
+)
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.simulate import axis_sweep_trajectory, imu_from_orientation, static_trajectory
 
@@ -11,10 +20,11 @@ FS = 285.7142857142857
 
 
 def one_hot(n, state, n_states=2, eta_a=(0, 0, 0), eta_m=(0, 0, 0)):
-    p = np.zeros((n, n_states + 6))
+    layout = PredictionLayout.of(n_states)
+    p = np.zeros((n, layout.size))
     p[:, state] = 1.0
-    p[:, n_states:n_states + 3] = eta_a
-    p[:, n_states + 3:] = eta_m
+    p[:, layout.eta_acc] = eta_a
+    p[:, layout.eta_mag] = eta_m
     return p
 
 
@@ -206,3 +216,19 @@ def test_noise_weights_scale_the_removed_noise():
     # 2 m/s² left over tilts by atan(2/9.81) = 11.5°, half of it by atan(1/9.81) = 5.8°, none by 0
     # (heading moves only at second order in 6D: 0.2° tolerance)
     assert out[0.0] == pytest.approx(11.5, abs=0.2) and out[0.5] == pytest.approx(5.8, abs=0.2) and out[1.0] < 1e-6
+
+
+def test_prediction_layout_and_the_two_fallback_rules():
+    """The row layout names its parts; the toggling CF's hard switch and the learned VQF's trust ramp
+    (filters.prediction) agree on what is valid and differ where the docstring says."""
+    layout = PredictionLayout.of(4)
+    assert (layout.n_states, layout.eta_acc_index, layout.eta_mag_index, layout.size) == (4, 4, 7, 10)
+    row = np.arange(10.0)
+    assert row[layout.probabilities].tolist() == [0, 1, 2, 3] and row[layout.eta_acc].tolist() == [4, 5, 6]
+    assert row[layout.eta_mag].tolist() == [7, 8, 9] and layout.outputs(layout.eta) == [4, 5, 6, 7, 8, 9]
+    assert layout.names(("a", "b", "c", "d"))[3:6] == ["p_d", "eta_acc_x", "eta_acc_y"]
+    for p, floor, status, trust in (([0.7, 0.1, 0.1, 0.1], 0.5, LEARNED, 0.4), ([0.4, 0.2, 0.2, 0.2], 0.5, LOW_CONFIDENCE, 0.0),
+                                    ([np.nan, 0.2, 0.2, 0.2], 0.0, NO_PREDICTION, 0.0), ([0.0] * 4, 0.0, NO_PREDICTION, 0.0)):
+        valid, top, total = class_evidence.py_func(layout, np.array(p + [0.0] * 6))
+        assert switch_status.py_func(valid, top, total, floor) == status
+        assert blend_trust.py_func(valid, top, total, floor) == pytest.approx(trust)

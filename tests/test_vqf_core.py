@@ -102,17 +102,18 @@ def test_coefficients_equal_vqf_package():
     f = VQFCoreFilter(FS)
     c = vqf.VQF(1.0 / FS).coeffs
     p = f.params
-    np.testing.assert_allclose([p.acc_b0, p.acc_b1, p.acc_b2], c["accLpB"], rtol=1e-12)
-    np.testing.assert_allclose([p.acc_a1, p.acc_a2], c["accLpA"], rtol=1e-12)
-    np.testing.assert_allclose([p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2],
-                               list(c["restGyrLpB"]) + list(c["restGyrLpA"]), rtol=1e-12)
-    np.testing.assert_allclose([p.mag_b0, p.mag_b1, p.mag_b2, p.mag_a1, p.mag_a2],
-                               list(c["magNormDipLpB"]) + list(c["magNormDipLpA"]), rtol=1e-12)
+    # the delta-form pair (k, decay) = (4 b0, a2) of each Butterworth low-pass (vqf_core.LowPass)
+    for ours, b, a in ((p.modulation.acc_lp, "accLpB", "accLpA"), (p.rest_lp, "restGyrLpB", "restGyrLpA"),
+                       (p.mag_lp, "magNormDipLpB", "magNormDipLpA")):
+        np.testing.assert_allclose([ours.k, ours.decay], [4.0 * c[b][0], c[a][1]], rtol=1e-12)
+        assert c[b][1] == pytest.approx(2 * c[b][0]) and c[b][2] == pytest.approx(c[b][0])  # b1, b2 implied by b0
+        assert 1.0 + c[a][0] + c[a][1] == pytest.approx(4.0 * c[b][0], rel=1e-9)  # a1 implied: K = 1 + a1 + a2
     scale = (100.0 * 180.0 / math.pi) ** 2
-    for ours, theirs in (("bias_p0", "biasP0"), ("bias_v", "biasV"), ("bias_w_motion", "biasMotionW"),
-                         ("bias_w_vertical", "biasVerticalW"), ("bias_w_rest", "biasRestW")):
-        assert getattr(p, ours) * scale == pytest.approx(c[theirs], rel=1e-12), ours
-    assert p.k_mag == pytest.approx(c["kMag"], rel=1e-12)
+    m = p.modulation
+    for ours, theirs in ((p.bias_p0, "biasP0"), (p.bias_v, "biasV"), (m.bias_w_motion, "biasMotionW"),
+                         (m.bias_w_vertical, "biasVerticalW"), (p.bias_w_rest, "biasRestW")):
+        assert ours * scale == pytest.approx(c[theirs], rel=1e-12), theirs
+    assert m.k_mag == pytest.approx(c["kMag"], rel=1e-12)
     assert p.k_mag_ref == pytest.approx(c["kMagRef"], rel=1e-12)
 
 
@@ -120,7 +121,8 @@ def test_coefficients_record_and_settings():
     f = VQFCoreFilter(FS, use_mag=False, tau_acc=1.5)
     p = f.params
     assert type(p).__name__ == "VQFCoreCoefficients" and p._fields[:2] == ("use_mag", "max_dt")
-    assert all(isinstance(v, float) for v in p)
+    assert all(isinstance(v, float) for v in p if not isinstance(v, tuple))
+    assert all(isinstance(v, float) for v in (*p.rest_lp, *p.mag_lp, *p.modulation.acc_lp, *p.modulation[1:]))
     assert p.use_mag == 0.0 and p.max_dt == VQFCoreSettings().max_dt and p.tau_acc == 1.5
     assert VQFCoreFilter.name == "vqf_core"
     # Butterworth: unit DC gain; a first-order gain for τ = 0 is 1

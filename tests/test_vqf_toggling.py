@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from togglecf.core.quaternion import angle_between
 from togglecf.filters import VQFCoreFilter
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.filters.vqf_toggling import TAU_ACC_RANGE, VQFTogglingFilter, VQFTogglingSettings
 from togglecf.registry import VQF_TOGGLING, FilterSpec
 from togglecf.run.config import load_config
@@ -25,7 +26,11 @@ def _predictions(n, rng, n_states=4):
     p = rng.random((n, n_states))
     p /= p.sum(axis=1, keepdims=True)
     p = np.repeat(p[:: 30], 30, axis=0)[:n]  # held between "hops", as the models give them
-    return np.hstack([p, 0.1 * rng.standard_normal((n, 6))])
+    layout = PredictionLayout.of(n_states)
+    rows = np.empty((n, layout.size))
+    rows[:, layout.probabilities] = p
+    rows[:, layout.eta] = 0.1 * rng.standard_normal((n, 6))
+    return rows
 
 
 def test_learning_off_is_the_core(mini_trial, rng):
@@ -66,9 +71,10 @@ def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
     norm/dip rejection is switched off here so that k is the modulated gain on every sample."""
     t = mini_trial
     n = t.n_samples
-    eta = np.zeros((n, 6))
-    eta[:, 3:] = (6.0, 0.0, 8.0)  # |η̂_m| = 10 µT
-    pred = np.hstack([np.tile([1.0, 0.0], (n, 1)), eta])
+    layout = PredictionLayout.of(2)
+    pred = np.zeros((n, layout.size))
+    pred[:, 0] = 1.0
+    pred[:, layout.eta_mag] = (6.0, 0.0, 8.0)  # |η̂_m| = 10 µT
     plain = dict(states=("a", "b"), mag_dist_rejection_enabled=False)
     s = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0, mag_backoff_measured=False)  # (10/5)² = 4: k / 5
     on = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pred)

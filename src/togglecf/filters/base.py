@@ -11,7 +11,9 @@ shared compiled loop ``run_batch``, so both give bit-identical results.
 
 State layout: ``state[0:4]`` the orientation quaternion (sensor -> ENU, ``[w,x,y,z]``),
 ``state[4]`` 1.0 once initialised from the first valid acc(/mag) sample, ``state[5:]``
-filter specific.
+filter specific. A kernel may read the whole vector as a named record (fields by name in numba,
+no offsets): ``state_record`` builds that numpy structured dtype and the flat ``state_names`` from
+one list of fields, ``record_view`` the numba function that reads the flat vector as that record.
 
 Coefficients: ``params`` is a named record, the filter class's ``Coefficients`` (a
 ``typing.NamedTuple``, which numba compiles to a struct: ``params.alpha`` costs the same as
@@ -41,8 +43,10 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import ClassVar, NamedTuple, get_type_hints
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 from togglecf.core.quaternion import (
     from_acc_mag_scalar,
@@ -61,7 +65,10 @@ __all__ = [
     "OrientationFilter",
     "dt_from_timestamps",
     "make_coefficients",
+    "record_fields",
+    "record_view",
     "run_batch",
+    "state_record",
 ]
 
 N_COMMON_STATE = 5
@@ -105,9 +112,14 @@ class CommonCoefficients(NamedTuple):
     max_dt: float
 
 
+def _is_record(kind) -> bool:
+    return isinstance(kind, type) and issubclass(kind, tuple) and hasattr(kind, "_fields")
+
+
 def make_coefficients(record: type, **values):
     """``record(**values)`` with each value converted to the field's declared type: ``float``,
-    ``int``, or ``np.ndarray`` (-> contiguous float64). Missing or unknown names raise."""
+    ``int``, ``np.ndarray`` (-> contiguous float64) or a nested ``NamedTuple`` (given as one, or
+    as a dict; converted likewise). Missing or unknown names raise."""
     hints = get_type_hints(record)
     missing = [f for f in record._fields if f not in values]
     unknown = sorted(set(values) - set(record._fields))
@@ -124,9 +136,73 @@ def make_coefficients(record: type, **values):
             out[f] = int(v)
         elif kind is np.ndarray:
             out[f] = np.ascontiguousarray(v, dtype=np.float64)
+        elif _is_record(kind):
+            out[f] = make_coefficients(kind, **(v._asdict() if isinstance(v, tuple) else v))
         else:
             raise TypeError(f"{record.__qualname__}.{f}: unsupported field type {kind!r}")
     return record(**out)
+
+
+#: the common part of every state record (``state[0:5]``)
+_COMMON_STATE_FIELDS = (("quat", ("quat_w", "quat_x", "quat_y", "quat_z")), ("initialized", "initialized"))
+
+
+def _record_layout(fields) -> tuple[list, list]:
+    dtype, names = [], []
+    for name, spec in fields:
+        if isinstance(spec, str):  # one float
+            dtype.append((name, np.float64))
+            names.append(spec)
+        elif isinstance(spec, tuple):  # a vector (tuple of names) or matrix (tuple of tuples) of floats
+            shape = np.shape(spec)
+            dtype.append((name, np.float64, shape))
+            names.extend(np.ravel(spec).tolist())
+        else:  # a nested record: a list of fields
+            sub, sub_names = _record_layout(spec)
+            dtype.append((name, np.dtype(sub)))
+            names.extend(sub_names)
+    return dtype, names
+
+
+def state_record(fields) -> tuple[np.dtype, tuple[str, ...]]:
+    """``(dtype, state_names)`` of a filter's state from its fields after the common
+    ``state[0:5]`` (``quat`` (4,), ``initialized``): each field is ``(name, spec)`` with ``spec``
+    the flat name of one float, a tuple of flat names (a float64 vector, or a matrix for a tuple
+    of tuples) or a list of fields (a nested record). ``dtype`` (float64 throughout, packed in
+    field order) lays out the whole flat state, so a kernel reads ``state.view(dtype)[0]``;
+    ``state_names`` are the flat names of ``state[5:]`` in the same order."""
+    dtype, names = _record_layout(_COMMON_STATE_FIELDS + tuple(fields))
+    dtype = np.dtype(dtype)
+    return dtype, tuple(names[N_COMMON_STATE:])
+
+
+def record_view(dtype: np.dtype):
+    """A numba function ``view(state) -> record``: the flat float64 ``state`` ``(n,)`` read as one
+    record of the structured ``dtype`` (``state_record``), in place (writes go to ``state``). The
+    same as ``state.view(dtype)[0]`` without the new array and its reference count per call (30 ns
+    per sample, a tenth of the VQF core). Unchecked: ``state`` must be C-contiguous and hold at
+    least ``dtype.itemsize`` bytes, as a filter's state does (``OrientationFilter``)."""
+    record = numba.from_dtype(dtype)
+
+    @intrinsic
+    def view(typingctx, state):
+        if not (isinstance(state, types.Array) and state.dtype == types.float64 and state.ndim == 1):
+            return None
+
+        def codegen(context, builder, signature, args):
+            data = context.make_array(signature.args[0])(context, builder, args[0]).data
+            return builder.bitcast(data, context.get_value_type(record))
+        return record(state), codegen
+    return view
+
+
+def record_fields(record: type, prefix: str) -> list:
+    """The ``state_record`` fields that hold a ``NamedTuple`` of floats (nested ones as nested
+    records), flat names ``prefix + field`` (``_`` between nested names): the record's field
+    order, written once in its class."""
+    hints = get_type_hints(record)
+    return [(f, record_fields(hints[f], f"{prefix}{f}_")) if _is_record(hints[f]) else (f, f"{prefix}{f}")
+            for f in record._fields]
 
 
 @dataclass

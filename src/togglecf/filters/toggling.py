@@ -19,7 +19,8 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    the gyro where the motion is unknown), no noise is removed (step 3) and the bias does not
    move (step 1). With every sample falling back, the filter is the same filter with every
    state at those slowest time constants and the learned terms off (test). A hard switch, like
-   the toggling itself; c₀ = 0 never falls back on a valid prediction. Cautious rather than the
+   the toggling itself; c₀ = 0 never falls back on a valid prediction. (The rule, and how it
+   differs from the learned VQF's blend towards its core, is in ``filters.prediction``.) Cautious rather than the
    fixed CF's τ: the out-of-fold predictions the gains are learned on fall back mostly on
    disturbed windows, where a fast correction follows the disturbance (docs/concepts/
    toggling-filter.md gives the measurement).
@@ -65,10 +66,21 @@ from togglecf.filters.base import (
     store_quat,
     vector_ok,
 )
+from togglecf.filters.prediction import (
+    LEARNED,
+    LOW_CONFIDENCE,
+    PredictionLayout,
+    back_off,
+    class_evidence,
+    predicted_disturbance,
+    remove_noise,
+    switch_status,
+)
 from togglecf.filters.timeconst import gain
 
 __all__ = [
-    "N_PRED_NOISE",
+    "PredictionDrivenFilter",
+    "prediction_step_of",
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
@@ -76,9 +88,6 @@ __all__ = [
     "toggle_step",
 ]
 
-N_PRED_NOISE = 6  # η̂_a (3) then η̂_m (3)
-#: step 4's outcome (``_gains``): the models' gains, or the fallback for want of a valid prediction or of confidence
-LEARNED, NO_PREDICTION, LOW_CONFIDENCE = 0, 1, 2
 _STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
 
 
@@ -147,7 +156,8 @@ class TogglingCoefficients(NamedTuple):
     """``params`` of ``toggle_step``: the common ``use_mag``, ``max_dt`` (see ``filters.base``), then
 
     Attributes:
-        n_states: number of motion states S (``len(TogglingSettings.states)``).
+        layout: the prediction row's layout for S = ``len(TogglingSettings.states)`` motion states
+            (``filters.prediction.PredictionLayout``).
         alpha_acc, alpha_mag: per-state gains per sample, float64 arrays ``(S,)``, from
             ``TogglingSettings.tau_acc``/``tau_mag`` and ``Ts`` (module docstring, "Gains").
         gamma: output blend weight per sample, from ``output_tau``.
@@ -161,7 +171,7 @@ class TogglingCoefficients(NamedTuple):
 
     use_mag: float
     max_dt: float
-    n_states: int
+    layout: PredictionLayout
     alpha_acc: np.ndarray
     alpha_mag: np.ndarray
     gamma: float
@@ -177,53 +187,39 @@ class TogglingCoefficients(NamedTuple):
 
 
 @njit(cache=True, inline="always")
-def _gains(params, pred, ns):
-    """Step 4: ``(α_a, α_m, status)``: the probability-weighted gains and ``LEARNED``, or the
-    cautious gains and ``NO_PREDICTION`` (no valid prediction) or ``LOW_CONFIDENCE`` (a valid one
-    whose confidence max_s p_s / Σ_s p_s is below the confidence floor)."""
+def _gains(params, pred, total):
+    """Step 4 on a used prediction: the probability-weighted gains ``(α_a, α_m)``, with
+    ``total`` = Σ_s p_s (``filters.prediction.class_evidence``)."""
     aa = 0.0
     am = 0.0
-    total = 0.0
-    top = 0.0
-    for s in range(ns):
+    for s in range(params.layout.n_states):
         p = pred[s]
-        if not (p >= 0.0 and p < math.inf):
-            return params.alpha_fallback_acc, params.alpha_fallback_mag, NO_PREDICTION
         aa += p * params.alpha_acc[s]
         am += p * params.alpha_mag[s]
-        total += p
-        top = max(top, p)
-    if not (total > 0.0):
-        return params.alpha_fallback_acc, params.alpha_fallback_mag, NO_PREDICTION
-    if top < params.confidence_floor * total:
-        return params.alpha_fallback_acc, params.alpha_fallback_mag, LOW_CONFIDENCE
-    return aa / total, am / total, LEARNED
+    return aa / total, am / total
 
 
 @njit(cache=True)
 def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm,
     low_confidence] (1 where a valid prediction was below the confidence floor: step 4's fallback)."""
-    use_mag, max_dt, ns = params.use_mag > 0.5, params.max_dt, params.n_states
+    use_mag, max_dt, layout = params.use_mag > 0.5, params.max_dt, params.layout
     gamma, bias_gain, static_idx, bias_gate = params.gamma, params.bias_gain, params.static_index, params.bias_gate
-    mag_scale, w_a, w_m = params.mag_disturbance_scale, params.noise_weight_acc, params.noise_weight_mag
-    alpha_a, alpha_m, status = _gains(params, pred, ns)  # step 4 first: the fallback also stops steps 1 and 3
+    mag_scale = params.mag_disturbance_scale
+    # step 4 first: the fallback (filters.prediction, the toggling CF's rule) also stops steps 1 and 3
+    valid, top, total = class_evidence(layout, pred)
+    status = switch_status(valid, top, total, params.confidence_floor)
     learned = status == LEARNED
-    eta_ok = learned
-    for j in range(N_PRED_NOISE):
-        if not math.isfinite(pred[ns + j]):
-            eta_ok = False
-    if eta_ok:  # step 3
-        a_d = (acc[0] - w_a * pred[ns], acc[1] - w_a * pred[ns + 1], acc[2] - w_a * pred[ns + 2])
-        m_d = (mag[0] - w_m * pred[ns + 3], mag[1] - w_m * pred[ns + 4], mag[2] - w_m * pred[ns + 5])
+    if learned:
+        alpha_a, alpha_m = _gains(params, pred, total)
     else:
-        a_d = (acc[0], acc[1], acc[2])
-        m_d = (mag[0], mag[1], mag[2])
+        alpha_a, alpha_m = params.alpha_fallback_acc, params.alpha_fallback_mag
+    eta_ok, a_d, m_d = remove_noise(layout, pred, acc, mag, params.noise_weight_acc, params.noise_weight_mag,
+                                    learned)  # step 3
     acc_ok = vector_ok(a_d)
     mag_ok = use_mag and vector_ok(m_d)
     if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted
-        e2 = pred[ns + 3] * pred[ns + 3] + pred[ns + 4] * pred[ns + 4] + pred[ns + 5] * pred[ns + 5]
-        alpha_m = alpha_m / (1.0 + e2 / (mag_scale * mag_scale))
+        alpha_m = back_off(alpha_m, predicted_disturbance(layout, pred, mag_scale))
     p_static = pred[static_idx] if learned else 0.0
     diag[0] = 0.0
     diag[1] = 0.0
@@ -284,16 +280,48 @@ def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, 
         quat_out[i, 3] = state[3]
 
 
+#: ``Coefficients`` record -> the step of the prediction-driven filters that use it (``prediction_step_of``)
+_STEPS: dict = {}
+
+
+def prediction_step_of(record: type):
+    """The step (numba dispatcher) of the prediction-driven filters whose ``Coefficients`` is
+    ``record``: what a compiled loop calls for a ``params`` of that type (``toggling.inloop``)."""
+    if record not in _STEPS:
+        raise TypeError(f"no prediction-driven filter has the coefficients {record.__qualname__}")
+    return _STEPS[record]
+
+
 class PredictionDrivenFilter(OrientationFilter):
     """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
     acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
     probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
-    m/s² and µT). ``update``/``update_batch`` take the predictions beside the IMU samples; with
-    none given, ``_default_pred`` stands in ("no model")."""
+    m/s² and µT; ``filters.prediction``). ``update``/``update_batch`` take the predictions beside
+    the IMU samples; with none given, ``_default_pred`` stands in ("no model"). Each subclass's
+    step is registered under its ``Coefficients`` (``prediction_step_of``)."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.step is not None:
+            known = _STEPS.setdefault(cls.Coefficients, cls.step)
+            if known is not cls.step:
+                raise TypeError(f"{cls.__name__}: its Coefficients {cls.Coefficients.__qualname__} belong to another step")
+
+    @classmethod
+    def settings_for(cls, class_names, rest_state: str, **overrides):
+        """Settings for a model whose classes are ``class_names`` (its rest class ``rest_state``), as
+        ``states``, built in one go so that per-state defaults match their number; ``overrides``
+        replace fields (``states`` too)."""
+        return cls.Settings(**{"states": tuple(class_names), **overrides})
+
+    @property
+    def layout(self) -> PredictionLayout:
+        """The layout of this filter's prediction rows (``filters.prediction``)."""
+        return PredictionLayout.of(len(self.settings.states))
 
     @property
     def n_predictions(self) -> int:
-        return len(self.settings.states) + N_PRED_NOISE
+        return self.layout.size
 
     def _default_pred(self, n):
         raise NotImplementedError
@@ -336,11 +364,16 @@ class TogglingFilter(PredictionDrivenFilter):
     diagnostic_names = ("alpha_acc", "alpha_mag", "p_static", "bias_norm", "low_confidence")
     step = toggle_step
 
+    @classmethod
+    def settings_for(cls, class_names, rest_state: str, **overrides):
+        """``PredictionDrivenFilter.settings_for``; the gyro bias is learned in ``rest_state``."""
+        return super().settings_for(class_names, rest_state, **{"static_state": rest_state, **overrides})
+
     def _coefficients(self) -> dict:
         s = self.settings
         ts = self.Ts
         alpha_acc, alpha_mag = np.array([gain(t, ts) for t in s.tau_acc]), np.array([gain(t, ts) for t in s.tau_mag])
-        return {"n_states": len(s.states), "alpha_acc": alpha_acc, "alpha_mag": alpha_mag, "gamma": gain(s.output_tau, ts),
+        return {"layout": PredictionLayout.of(len(s.states)), "alpha_acc": alpha_acc, "alpha_mag": alpha_mag, "gamma": gain(s.output_tau, ts),
                 "bias_gain": gain(s.bias_tau, ts), "static_index": s.states.index(s.static_state),
                 "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,

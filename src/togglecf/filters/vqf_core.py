@@ -10,7 +10,9 @@ Frames (ENU earth, quaternions sensor -> frame, ``[w, x, y, z]``, Hamilton):
 ς sensor, I almost-inertial frame of pure strapdown integration, εᵢ 6D earth frame (heading
 drifts), ε 9D earth frame. State: ``q_gyr`` (ς -> I), ``q_acc`` (I -> εᵢ), heading offset δ.
 
-Per sample (gyro, then acc, then mag, as VQF):
+Per sample (gyro, then acc, then mag, as VQF; ``update_gyr``, ``update_acc``, ``update_bias``,
+``update_mag``, ``update_output``, composed by ``core_update``, over the named state record
+``CORE_STATE`` and the coefficients ``VQFCoreCoefficients``):
 
 Gyroscope
   (R1) rest LP:  ω̄ = LP₂(ω; τ_rest);  rest candidate while ‖ω − ω̄‖² < th_ω² and every
@@ -66,9 +68,9 @@ Magnetometer (9D)
 
 Second-order Butterworth LP₂(·; τ): cut-off f_c = √2/(2πτ), bilinear transform with
 pre-warping, C = tan(π f_c Ts): b₀ = b₂ = C²/D, b₁ = 2b₀, a₁ = 2(C² − 1)/D, a₂ = (1 − √2C + C²)/D,
-D = 1 + √2C + C², run in a "delta" form (``_lp``: level and increment, the same transfer
-function as VQF's direct form II transposed, whose state would kick the output when the learned
-filter changes τ_acc). To not depend on the first sample, each filter outputs the running mean of
+D = 1 + √2C + C², run in a "delta" form (``_lp_bank`` with the pair ``LowPass`` (4 b₀, a₂): level
+and increment, the same transfer function as VQF's direct form II transposed, whose state would
+kick the output when the learned filter changes τ_acc). To not depend on the first sample, each filter outputs the running mean of
 its inputs for its first τ seconds and then starts in the steady state of that mean.
 
 Bad samples (policy of ``filters.base``): a non-finite/saturated gyro or an invalid Δt skips
@@ -86,20 +88,37 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
 
 from togglecf.core.quaternion import from_rotvec_scalar, multiply_scalar, rotate_scalar
-from togglecf.filters.base import FilterSettings, OrientationFilter, dt_valid, gyro_valid, vector_ok
+from togglecf.filters.base import (
+    FilterSettings,
+    OrientationFilter,
+    dt_valid,
+    gyro_valid,
+    record_view,
+    state_record,
+    vector_ok,
+)
 
 __all__ = [
+    "CORE_STATE",
+    "CORE_STATE_FIELDS",
     "VQFCoreCoefficients",
     "CoreModulation",
+    "LowPass",
     "core_update",
-    "base_modulation",
+    "update_acc",
+    "update_bias",
+    "update_gyr",
+    "update_mag",
+    "update_output",
     "bias_noise_w",
     "VQFCoreFilter",
     "VQFCoreSettings",
     "butterworth_lp_coefficients",
     "gain_from_tau",
+    "lp_coefficients",
 ]
 
 _DEG = math.pi / 180.0
@@ -195,6 +214,29 @@ class VQFCoreSettings(FilterSettings):
                 raise ValueError(f"{k} must be >= 0, got {getattr(self, k)}")
 
 
+class LowPass(NamedTuple):
+    """One LP₂ (module docstring) in the delta form of ``_lp_bank``, as the C keeps it
+    (``tcf_vqf_lp_coef_t``): ``k`` = 4 b₀ = 1 + a₁ + a₂ and ``decay`` = a₂ = 1 − β (the C stores
+    β = 1 − a₂; the Python keeps a₂ itself, the factor it multiplies by). Dimensionless."""
+
+    k: float
+    decay: float
+
+
+class CoreModulation(NamedTuple):
+    """The coefficients a learned filter may change from sample to sample (``filters.vqf_toggling``);
+    the core itself runs them at their settings' values (``VQFCoreCoefficients.modulation``). Same
+    units as in ``VQFCoreCoefficients``. The one place their order is written: records of it are
+    built from ``_fields`` (``filters.base.record_fields``)."""
+
+    acc_lp: LowPass  # the τ_acc low-pass (inclination, R̄ and (R b̂)‾ of the bias estimation)
+    k_mag: float  # heading gain per sample, 1 − exp(−Ts/τ_mag)
+    bias_w_motion: float  # W_motion of the bias estimation in motion [(rad/s)²]
+    bias_w_vertical: float  # its vertical-axis counterpart
+    rest_th_gyr_sq: float  # th_ω² [(rad/s)²]
+    rest_th_acc_sq: float  # th_a² [(m/s²)²]
+
+
 class VQFCoreCoefficients(NamedTuple):
     """Per-sample coefficients (from the settings and ``Ts``), passed to the kernel as ``params``.
     Angles and rates in rad, rad/s; covariances in (rad/s)²; flags 1.0/0.0."""
@@ -204,37 +246,20 @@ class VQFCoreCoefficients(NamedTuple):
     ts: float  # nominal sampling time Ts [s]
     inv_ts: float  # 1/Ts [1/s]
     tau_acc: float
-    acc_b0: float
-    acc_b1: float
-    acc_b2: float
-    acc_a1: float
-    acc_a2: float
-    k_mag: float
+    modulation: CoreModulation  # at the settings' values (the core's own; a learned filter's fallback)
     tau_mag: float
     motion_bias: float
     rest_bias: float
     mag_rejection: float
     bias_p0: float
     bias_v: float
-    bias_w_motion: float
-    bias_w_vertical: float
     bias_w_rest: float
     bias_clip: float
     rest_tau: float
-    rest_b0: float
-    rest_b1: float
-    rest_b2: float
-    rest_a1: float
-    rest_a2: float
-    rest_th_gyr_sq: float
-    rest_th_acc_sq: float
+    rest_lp: LowPass  # τ_rest low-pass (R1, R2)
     rest_min_t: float
     mag_cur_tau: float
-    mag_b0: float
-    mag_b1: float
-    mag_b2: float
-    mag_a1: float
-    mag_a2: float
+    mag_lp: LowPass  # τ_mag,current low-pass of the field norm and dip (M1)
     k_mag_ref: float
     mag_norm_th: float
     mag_dip_th: float
@@ -246,23 +271,6 @@ class VQFCoreCoefficients(NamedTuple):
     mag_rejection_factor: float
 
 
-class CoreModulation(NamedTuple):
-    """The coefficients a learned filter may change from sample to sample (``filters.vqf_toggling``);
-    the core itself runs them at their settings' values (``base_modulation``). Same units as in
-    ``VQFCoreCoefficients``."""
-
-    acc_b0: float  # τ_acc low-pass (second-order Butterworth) ...
-    acc_b1: float
-    acc_b2: float
-    acc_a1: float
-    acc_a2: float  # ... coefficients
-    k_mag: float  # heading gain per sample, 1 − exp(−Ts/τ_mag)
-    bias_w_motion: float  # W_motion of the bias estimation in motion [(rad/s)²]
-    bias_w_vertical: float  # its vertical-axis counterpart
-    rest_th_gyr_sq: float  # th_ω² [(rad/s)²]
-    rest_th_acc_sq: float  # th_a² [(m/s²)²]
-
-
 @njit(cache=True)
 def butterworth_lp_coefficients(tau: float, ts: float) -> tuple[float, float, float, float, float]:
     """``(b0, b1, b2, a1, a2)`` of the second-order Butterworth low-pass with time constant
@@ -272,6 +280,13 @@ def butterworth_lp_coefficients(tau: float, ts: float) -> tuple[float, float, fl
     d = c * c + math.sqrt(2.0) * c + 1.0
     b0 = c * c / d
     return b0, 2.0 * b0, b0, 2.0 * (c * c - 1.0) / d, (1.0 - math.sqrt(2.0) * c + c * c) / d
+
+
+@njit(cache=True)
+def lp_coefficients(tau: float, ts: float) -> LowPass:
+    """The ``LowPass`` pair of ``butterworth_lp_coefficients(tau, ts)``: (4 b₀, a₂)."""
+    b0, _, _, _, a2 = butterworth_lp_coefficients(tau, ts)
+    return LowPass(4.0 * b0, a2)
 
 
 @njit(cache=True)
@@ -290,54 +305,39 @@ def bias_noise_w(sigma: float, v: float) -> float:
 
 
 # ------------------------------------------------------------------------------------------
-# State layout: state[0:4] output quaternion, state[4] initialised; then these, in order.
-# A low-pass bank of C channels is [n, ready, (s0, s1) × C]: while averaging (ready = 0), n is
-# the number of samples so far and s0 the running sum of the channel.
+# State: a named record over the flat state (filters.base.state_record). A low-pass bank of
+# C channels is a record (n, ready, s (C, 2)): s[c] = (level v, increment dv) of channel c;
+# while averaging (ready = 0), n is the number of samples so far and s[c, 0] the running sum.
 # ------------------------------------------------------------------------------------------
 
 def _bank(name, channels):
-    return (f"{name}_n", f"{name}_ready") + tuple(f"{name}_{c}_{s}" for c in channels for s in ("s0", "s1"))
+    return [("n", f"{name}_n"), ("ready", f"{name}_ready"),
+            ("s", tuple((f"{name}_{c}_s0", f"{name}_{c}_s1") for c in channels))]
+
+
+def _named(name, suffixes, sep="_"):
+    return name, tuple(f"{name}{sep}{s}" for s in suffixes)
 
 
 _XYZ = ("x", "y", "z")
-_STATE_NAMES = (
-    ("q_gyr_w", "q_gyr_x", "q_gyr_y", "q_gyr_z", "q_acc_w", "q_acc_x", "q_acc_y", "q_acc_z", "delta",
-     "bias_x", "bias_y", "bias_z")
-    + tuple(f"bias_p{i}{j}" for i in range(3) for j in range(3))
-    + ("rest_detected", "rest_t", "rest_gyr_lp_x", "rest_gyr_lp_y", "rest_gyr_lp_z",
-       "mag_dist_detected", "mag_ref_norm", "mag_ref_dip", "mag_undisturbed_t", "mag_reject_t",
-       "mag_cand_norm", "mag_cand_dip", "mag_cand_t", "k_mag_init")
-    + _bank("acc_lp", _XYZ)
-    + _bank("rest_gyr_bank", _XYZ)
-    + _bank("rest_acc_bank", _XYZ)
-    + _bank("bias_r_lp", tuple(f"r{i}{j}" for i in range(3) for j in range(3)))
-    + _bank("bias_rb_lp", ("x", "y"))
-    + _bank("mag_nd_lp", ("norm", "dip"))
+#: the core's state fields (``filters.base.state_record``); a learned filter's state starts with them
+CORE_STATE_FIELDS = (
+    _named("q_gyr", "wxyz"), _named("q_acc", "wxyz"), ("delta", "delta"), _named("bias", _XYZ),
+    _named("bias_p", tuple(f"{i}{j}" for i in range(3) for j in range(3)), sep=""),
+    ("rest_detected", "rest_detected"), ("rest_t", "rest_t"), _named("rest_gyr_lp", _XYZ),
+    ("mag_dist_detected", "mag_dist_detected"), ("mag_ref_norm", "mag_ref_norm"), ("mag_ref_dip", "mag_ref_dip"),
+    ("mag_undisturbed_t", "mag_undisturbed_t"), ("mag_reject_t", "mag_reject_t"),
+    ("mag_cand_norm", "mag_cand_norm"), ("mag_cand_dip", "mag_cand_dip"), ("mag_cand_t", "mag_cand_t"),
+    ("k_mag_init", "k_mag_init"),
+    ("acc_lp", _bank("acc_lp", _XYZ)),
+    ("rest_gyr_bank", _bank("rest_gyr_bank", _XYZ)),
+    ("rest_acc_bank", _bank("rest_acc_bank", _XYZ)),
+    ("bias_r_lp", _bank("bias_r_lp", tuple(f"r{i}{j}" for i in range(3) for j in range(3)))),
+    ("bias_rb_lp", _bank("bias_rb_lp", ("x", "y"))),
+    ("mag_nd_lp", _bank("mag_nd_lp", ("norm", "dip"))),
 )
-_IDX = {n: 5 + i for i, n in enumerate(_STATE_NAMES)}
-O_QGYR = _IDX["q_gyr_w"]
-O_QACC = _IDX["q_acc_w"]
-O_DELTA = _IDX["delta"]
-O_BIAS = _IDX["bias_x"]
-O_P = _IDX["bias_p00"]
-O_REST = _IDX["rest_detected"]
-O_REST_T = _IDX["rest_t"]
-O_GYR_LP = _IDX["rest_gyr_lp_x"]
-O_MAG_DIST = _IDX["mag_dist_detected"]
-O_MAG_REF_NORM = _IDX["mag_ref_norm"]
-O_MAG_REF_DIP = _IDX["mag_ref_dip"]
-O_MAG_UNDIST_T = _IDX["mag_undisturbed_t"]
-O_MAG_REJECT_T = _IDX["mag_reject_t"]
-O_MAG_CAND_NORM = _IDX["mag_cand_norm"]
-O_MAG_CAND_DIP = _IDX["mag_cand_dip"]
-O_MAG_CAND_T = _IDX["mag_cand_t"]
-O_K_MAG_INIT = _IDX["k_mag_init"]
-B_ACC = _IDX["acc_lp_n"]
-B_RGYR = _IDX["rest_gyr_bank_n"]
-B_RACC = _IDX["rest_acc_bank_n"]
-B_R = _IDX["bias_r_lp_n"]
-B_RB = _IDX["bias_rb_lp_n"]
-B_MAG = _IDX["mag_nd_lp_n"]
+CORE_STATE, _STATE_NAMES = state_record(CORE_STATE_FIELDS)
+_core_state = record_view(CORE_STATE)
 
 _DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "delta", "k_mag")
 
@@ -347,19 +347,11 @@ _DIAG_NAMES = ("rest", "mag_dist", "bias_x", "bias_y", "bias_z", "bias_sigma", "
 # ------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
-def _lp_begin(state, off):
-    """Start a sample of the LP bank at ``off``: ``(ready, n)``, counting the sample while averaging."""
-    if state[off + 1] > 0.5:
-        return True, 0.0
-    n = state[off] + 1.0
-    state[off] = n
-    return False, n
-
-
-@njit(cache=True, inline="always")
-def _lp(state, i, x, ready, n, b0, b1, b2, a1, a2):
-    """One channel (state[i], state[i+1]) = (v, dv) of the second-order LP
-    H(z) = b0 (1 + z⁻¹)² / (1 + a1 z⁻¹ + a2 z⁻²) with unit DC gain: the output for input ``x``.
+def _lp_bank(bank, xs, c, tau, ts):
+    """One sample of the low-pass bank ``bank`` (a state record, module docstring) with
+    coefficients ``c`` (a ``LowPass``): the outputs for the inputs ``xs`` (a tuple, one per
+    channel). Per channel (v, dv) = ``bank.s[ch]``, the second-order LP
+    H(z) = b0 (1 + z⁻¹)² / (1 + a1 z⁻¹ + a2 z⁻²) with unit DC gain.
 
     Delta form (as the C core, ``embedded/tcf_vqf.c``): with K = 4 b0 = 1 + a1 + a2 and
     β = 1 − a2, v the level and dv its last increment,
@@ -368,28 +360,31 @@ def _lp(state, i, x, ready, n, b0, b1, b2, a1, a2):
     The same transfer function as VQF's direct form II transposed, but its state is the
     signal itself (level and increment), not a coefficient-dependent mix: when the learned
     filter changes τ_acc between samples (``filters.vqf_toggling``) the output continues
-    smoothly, where the DF2T state run on with new coefficients kicks the output (measured
-    4.2 m/s² on the low-passed gravity for a 3 s -> 1 s switch). ``b1``, ``a1`` are implied."""
-    if ready:
-        dv = a2 * state[i + 1] + 4.0 * b0 * (x - state[i])  # (1 − β) = a2
-        y = state[i] + 0.25 * (dv - state[i + 1])
-        state[i] += dv
-        state[i + 1] = dv
-        return y
-    state[i] += x  # averaging phase: running sum, output the mean
-    return state[i] / n
+    smoothly, where the DF2T state run on with new coefficients kicks the output.
 
-
-@njit(cache=True, inline="always")
-def _lp_end(state, off, nch, ready, n, tau, ts, b0, b2, a2):
-    """End of the averaging phase after τ: start each channel in the steady state of its mean
-    (v = mean, dv = 0)."""
-    if (not ready) and n * ts >= tau:
-        for c in range(nch):
-            i = off + 2 + 2 * c
-            state[i] = state[i] / n
-            state[i + 1] = 0.0
-        state[off + 1] = 1.0
+    For its first τ [s] the bank averages (outputs the running mean); then every channel starts
+    in the steady state of its mean (v = mean, dv = 0)."""
+    s = bank.s
+    ys = xs
+    if bank.ready > 0.5:
+        decay, k = c.decay, c.k  # read once: c may be a record in the same memory as s
+        for ch in range(len(xs)):
+            dv = decay * s[ch, 1] + k * (xs[ch] - s[ch, 0])  # (1 − β) = a2
+            ys = tuple_setitem(ys, ch, s[ch, 0] + 0.25 * (dv - s[ch, 1]))
+            s[ch, 0] += dv
+            s[ch, 1] = dv
+        return ys
+    n = bank.n + 1.0
+    bank.n = n
+    for ch in range(len(xs)):  # averaging phase: running sum, output the mean
+        s[ch, 0] += xs[ch]
+        ys = tuple_setitem(ys, ch, s[ch, 0] / n)
+    if n * ts >= tau:
+        for ch in range(len(xs)):
+            s[ch, 0] = s[ch, 0] / n
+            s[ch, 1] = 0.0
+        bank.ready = 1.0
+    return ys
 
 
 @njit(cache=True, inline="always")
@@ -417,8 +412,13 @@ def _unit(q):
 
 
 @njit(cache=True, inline="always")
-def _quat(state, off):
-    return (state[off], state[off + 1], state[off + 2], state[off + 3])
+def _get4(v):
+    return (v[0], v[1], v[2], v[3])
+
+
+@njit(cache=True, inline="always")
+def _set4(v, q):
+    v[0], v[1], v[2], v[3] = q
 
 
 @njit(cache=True, inline="always")
@@ -453,16 +453,7 @@ def _mmt(a, b):
 
 
 @njit(cache=True, inline="always")
-def _bias_predict(state, p):
-    """(B1): P_ii ← P_ii + V while P_ii < P₀ (also without a measurement)."""
-    for i in range(3):
-        j = O_P + 4 * i
-        if state[j] < p.bias_p0:
-            state[j] += p.bias_v
-
-
-@njit(cache=True, inline="always")
-def _bias_update(state, p, ex, ey, ez, pmt, s):
+def _bias_correct(st, p, ex, ey, ez, pmt, s):
     """(B4) with ``pmt`` = P Mᵀ and ``s`` = M P Mᵀ + W (9-tuples, s symmetric): K = P Mᵀ S⁻¹,
     b̂ ← b̂ + K e (e clipped to ±b_clip), P ← P − K M P = P − K (P Mᵀ)ᵀ (P is symmetric)."""
     # S⁻¹ by the adjugate; S is symmetric positive definite (W > 0), so only 6 cofactors
@@ -480,225 +471,219 @@ def _bias_update(state, p, ex, ey, ez, pmt, s):
     k = _mmt(pmt, (i00, i01, i02, i01, i11, i12, i02, i12, i22))  # P Mᵀ S⁻¹ (S⁻¹ symmetric)
     clip = p.bias_clip
     e0, e1, e2 = _clip(ex, clip), _clip(ey, clip), _clip(ez, clip)
-    state[O_BIAS] += k[0] * e0 + k[1] * e1 + k[2] * e2
-    state[O_BIAS + 1] += k[3] * e0 + k[4] * e1 + k[5] * e2
-    state[O_BIAS + 2] += k[6] * e0 + k[7] * e1 + k[8] * e2
+    b = st.bias
+    b[0] += k[0] * e0 + k[1] * e1 + k[2] * e2
+    b[1] += k[3] * e0 + k[4] * e1 + k[5] * e2
+    b[2] += k[6] * e0 + k[7] * e1 + k[8] * e2
     kmp = _mmt(k, pmt)  # K (P Mᵀ)ᵀ = K M P
     for i in range(9):
-        state[O_P + i] -= kmp[i]
+        st.bias_p[i] -= kmp[i]
+
+
+# ------------------------------------------------------------------------------------------
+# The step, split as VQF's updateGyr / updateAcc / updateMag. Each part takes the state record
+# ``st`` (``CORE_STATE``, or a record that starts with its fields), the coefficients ``p``
+# (``VQFCoreCoefficients``) and ``mod`` (a ``CoreModulation``, or a record with its fields).
+# ------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def update_gyr(st, p, mod, gyr, dt):
+    """A valid gyro sample ω [rad/s] over Δt [s]: rest detection (R1), then Alg. 1 l. 8."""
+    if p.rest_bias > 0.5 or p.mag_rejection > 0.5:  # (R1); the rest low-pass also feeds (M3)
+        g0, g1, g2 = _lp_bank(st.rest_gyr_bank, (gyr[0], gyr[1], gyr[2]), p.rest_lp, p.rest_tau, p.ts)
+        st.rest_gyr_lp[0], st.rest_gyr_lp[1], st.rest_gyr_lp[2] = g0, g1, g2
+        d0, d1, d2 = gyr[0] - g0, gyr[1] - g1, gyr[2] - g2
+        if (d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_gyr_sq or abs(g0) > p.bias_clip
+                or abs(g1) > p.bias_clip or abs(g2) > p.bias_clip):
+            st.rest_t = 0.0
+            st.rest_detected = 0.0
+        else:
+            st.rest_t += p.ts
+            if st.rest_t >= p.rest_min_t:
+                st.rest_detected = 1.0
+    # Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual Δt
+    b = st.bias
+    dq = from_rotvec_scalar((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
+    _set4(st.q_gyr, _unit(multiply_scalar(_get4(st.q_gyr), dq)))
 
 
 @njit(cache=True, inline="always")
-def _clip_bias(state, p):
+def update_acc(st, p, mod, acc):
+    """A valid accelerometer sample a [m/s²]: rest detection (R2), then the inclination correction
+    (Alg. 1 l. 9-14). Returns ``(corrected, a_x, a_y)``: whether q_acc was corrected, and the
+    normalised low-passed acceleration in εᵢ (l. 12) that the bias estimation (B3) uses."""
+    if p.rest_bias > 0.5:  # (R2)
+        l0, l1, l2 = _lp_bank(st.rest_acc_bank, (acc[0], acc[1], acc[2]), p.rest_lp, p.rest_tau, p.ts)
+        d0, d1, d2 = acc[0] - l0, acc[1] - l1, acc[2] - l2
+        if d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_acc_sq:
+            st.rest_t = 0.0
+            st.rest_detected = 0.0
+    ai = rotate_scalar(_get4(st.q_gyr), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
+    f = _lp_bank(st.acc_lp, ai, mod.acc_lp, p.tau_acc, p.ts)  # Alg. 1 l. 10
+    qa = _get4(st.q_acc)
+    ae = rotate_scalar(qa, f)  # Alg. 1 l. 11
+    na = math.sqrt(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2])
+    if not (na > 0.0 and na < math.inf):
+        return False, 0.0, 0.0
+    rn = 1.0 / na
+    ax, ay, az = ae[0] * rn, ae[1] * rn, ae[2] * rn  # Alg. 1 l. 12
+    qw = math.sqrt(max(0.5 * (az + 1.0), 0.0))  # Alg. 1 l. 13
+    if qw > 1e-6:  # Alg. 1 l. 14
+        h = 0.5 / qw
+        corr = (qw, ay * h, -ax * h, 0.0)
+    else:  # a points down: the 180° correction about any horizontal axis
+        corr = (0.0, 1.0, 0.0, 0.0)
+    _set4(st.q_acc, _unit(multiply_scalar(corr, qa)))
+    st.initialized = 1.0
+    return True, ax, ay
+
+
+@njit(cache=True, inline="always")
+def update_bias(st, p, mod, ax, ay):
+    """Gyro bias estimation (B1)-(B5) after an inclination correction with the normalised
+    low-passed acceleration (a_x, a_y) in εᵢ. Returns q_6D (Alg. 1 l. 15)."""
+    b0, b1, b2 = st.bias[0], st.bias[1], st.bias[2]
+    q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+    r = _matrix(q6)  # R(q_6D)
+    rb = (r[0] * b0 + r[1] * b1 + r[2] * b2, r[3] * b0 + r[4] * b1 + r[5] * b2)
+    rl = _lp_bank(st.bias_r_lp, r, mod.acc_lp, p.tau_acc, p.ts)  # R̄ = LP₂(R; τ_acc)
+    rb0, rb1 = _lp_bank(st.bias_rb_lp, rb, mod.acc_lp, p.tau_acc, p.ts)  # (R b̂)‾ = LP₂(R b̂; τ_acc), x and y
+    pd = st.bias_p
+    for i in range(3):  # (B1): P_ii ← P_ii + V while P_ii < P₀ (also without a measurement)
+        if pd[4 * i] < p.bias_p0:
+            pd[4 * i] += p.bias_v
+    P = (pd[0], pd[1], pd[2], pd[3], pd[4], pd[5], pd[6], pd[7], pd[8])
+    if p.rest_bias > 0.5 and st.rest_detected > 0.5:  # (B2): y = ω̄, M = I, P Mᵀ = P
+        w = p.bias_w_rest
+        g = st.rest_gyr_lp
+        _bias_correct(st, p, g[0] - b0, g[1] - b1, g[2] - b2, P,
+                      (P[0] + w, P[1], P[2], P[3], P[4] + w, P[5], P[6], P[7], P[8] + w))
+    elif p.motion_bias > 0.5:  # (B3): M = R̄
+        ex = -ay * p.inv_ts + rb0 - (rl[0] * b0 + rl[1] * b1 + rl[2] * b2)
+        ey = ax * p.inv_ts + rb1 - (rl[3] * b0 + rl[4] * b1 + rl[5] * b2)
+        ez = -(rl[6] * b0 + rl[7] * b1 + rl[8] * b2)
+        pmt = _mmt(P, rl)  # P Mᵀ
+        s = _mm(rl, pmt)  # M P Mᵀ
+        _bias_correct(st, p, ex, ey, ez, pmt, (s[0] + mod.bias_w_motion, s[1], s[2], s[3], s[4] + mod.bias_w_motion,
+                                               s[5], s[6], s[7], s[8] + mod.bias_w_vertical))
     for i in range(3):
-        state[O_BIAS + i] = _clip(state[O_BIAS + i], p.bias_clip)
+        st.bias[i] = _clip(st.bias[i], p.bias_clip)
+    return q6
 
-
-# ------------------------------------------------------------------------------------------
-# The step
-# ------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
-def core_update(state, p, mod, gyr, acc, mag, dt, diag):
-    """One sample of the VQF core (module docstring) with coefficients ``p`` and the modulated
-    ones ``mod`` (a ``CoreModulation``). diag: see ``VQFCoreFilter.diagnostic_names``."""
-    ts = p.ts
-    rest_bias = p.rest_bias > 0.5
-    rest_lp_on = rest_bias or p.mag_rejection > 0.5
+def _mag_disturbance(st, p, me):
+    """Magnetic disturbance detection (M1)-(M3) from the field in εᵢ, ``me``."""
+    nrm = math.sqrt(me[0] * me[0] + me[1] * me[1] + me[2] * me[2])  # (M1)
+    dip = -math.asin(min(max(me[2] / nrm, -1.0), 1.0))
+    if p.mag_cur_tau > 0.0:
+        nrm, dip = _lp_bank(st.mag_nd_lp, (nrm, dip), p.mag_lp, p.mag_cur_tau, p.ts)
+    ref_n = st.mag_ref_norm  # (M2)
+    if abs(nrm - ref_n) < p.mag_norm_th * ref_n and abs(dip - st.mag_ref_dip) < p.mag_dip_th:
+        st.mag_undisturbed_t += p.ts
+        if st.mag_undisturbed_t >= p.mag_min_undisturbed_t:
+            st.mag_dist_detected = 0.0
+            st.mag_ref_norm += p.k_mag_ref * (nrm - ref_n)
+            st.mag_ref_dip += p.k_mag_ref * (dip - st.mag_ref_dip)
+    else:
+        st.mag_undisturbed_t = 0.0
+        st.mag_dist_detected = 1.0
+    cand_n = st.mag_cand_norm  # (M3)
+    if abs(nrm - cand_n) < p.mag_norm_th * cand_n and abs(dip - st.mag_cand_dip) < p.mag_dip_th:
+        g = st.rest_gyr_lp
+        if g[0] * g[0] + g[1] * g[1] + g[2] * g[2] >= p.mag_new_min_gyr_sq:  # ‖ω̄‖ ≥ ω_new,min
+            st.mag_cand_t += p.ts
+        st.mag_cand_norm += p.k_mag_ref * (nrm - cand_n)
+        st.mag_cand_dip += p.k_mag_ref * (dip - st.mag_cand_dip)
+        if st.mag_dist_detected > 0.5 and (st.mag_cand_t >= p.mag_new_time or (
+                st.mag_ref_norm == 0.0 and st.mag_cand_t >= p.mag_new_first_time)):
+            st.mag_ref_norm = st.mag_cand_norm
+            st.mag_ref_dip = st.mag_cand_dip
+            st.mag_dist_detected = 0.0
+            st.mag_undisturbed_t = p.mag_min_undisturbed_t
+    else:
+        st.mag_cand_t = 0.0
+        st.mag_cand_norm = nrm
+        st.mag_cand_dip = dip
 
-    # ---------------- gyroscope ----------------
-    # policy of filters.base: a non-finite or saturated reading or an invalid Δt is neither
-    # integrated nor learnt from (the rest low-pass feeds the rest bias measurement)
-    if gyro_valid(gyr) and dt_valid(dt, p.max_dt):
-        if rest_lp_on:  # (R1)
-            ready, n = _lp_begin(state, B_RGYR)
-            g0 = _lp(state, B_RGYR + 2, gyr[0], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            g1 = _lp(state, B_RGYR + 4, gyr[1], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            g2 = _lp(state, B_RGYR + 6, gyr[2], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            _lp_end(state, B_RGYR, 3, ready, n, p.rest_tau, ts, p.rest_b0, p.rest_b2, p.rest_a2)
-            state[O_GYR_LP], state[O_GYR_LP + 1], state[O_GYR_LP + 2] = g0, g1, g2
-            d0, d1, d2 = gyr[0] - g0, gyr[1] - g1, gyr[2] - g2
-            if (d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_gyr_sq or abs(g0) > p.bias_clip
-                    or abs(g1) > p.bias_clip or abs(g2) > p.bias_clip):
-                state[O_REST_T] = 0.0
-                state[O_REST] = 0.0
+
+@njit(cache=True, inline="always")
+def update_mag(st, p, mod, mag, q6):
+    """A valid magnetometer sample (9D) with the current q_6D: disturbance detection (M1)-(M3),
+    then the heading correction (Alg. 1 l. 17-19, M4, M5). Returns the gain k used."""
+    me = rotate_scalar(q6, (mag[0], mag[1], mag[2]))  # Alg. 1 l. 17
+    if p.mag_rejection > 0.5:
+        _mag_disturbance(st, p, me)
+    dis = _wrap(math.atan2(me[0], me[1]) - st.delta)  # Alg. 1 l. 18-19
+    k = mod.k_mag
+    if p.mag_rejection > 0.5:  # (M4)
+        if st.mag_dist_detected > 0.5:
+            if st.mag_reject_t <= p.mag_max_rejection_t:
+                st.mag_reject_t += p.ts
+                k = 0.0
             else:
-                state[O_REST_T] += ts
-                if state[O_REST_T] >= p.rest_min_t:
-                    state[O_REST] = 1.0
-        # Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual Δt
-        dq = from_rotvec_scalar((gyr[0] - state[O_BIAS]) * dt, (gyr[1] - state[O_BIAS + 1]) * dt,
-                                (gyr[2] - state[O_BIAS + 2]) * dt)
-        qg = _unit(multiply_scalar(_quat(state, O_QGYR), dq))
-        state[O_QGYR], state[O_QGYR + 1], state[O_QGYR + 2], state[O_QGYR + 3] = qg
+                k = k / p.mag_rejection_factor
+        else:
+            st.mag_reject_t = max(st.mag_reject_t - p.mag_rejection_factor * p.ts, 0.0)
+    kinit = st.k_mag_init  # (M5): k ≥ 1/N for the N-th sample while 1/N·τ_mag ≥ Ts
+    if kinit != 0.0:
+        k = max(k, kinit)
+        kinit = kinit / (kinit + 1.0)
+        st.k_mag_init = 0.0 if kinit * p.tau_mag < p.ts else kinit
+    st.delta = _wrap(st.delta + k * dis)  # Alg. 1 l. 19
+    return k
 
-    # ---------------- accelerometer ----------------
-    q6 = (1.0, 0.0, 0.0, 0.0)
-    have_q6 = False  # q_6D is computed once per sample, in the bias estimation when it runs
-    if vector_ok(acc):
-        if rest_bias:  # (R2)
-            ready, n = _lp_begin(state, B_RACC)
-            l0 = _lp(state, B_RACC + 2, acc[0], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            l1 = _lp(state, B_RACC + 4, acc[1], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            l2 = _lp(state, B_RACC + 6, acc[2], ready, n, p.rest_b0, p.rest_b1, p.rest_b2, p.rest_a1, p.rest_a2)
-            _lp_end(state, B_RACC, 3, ready, n, p.rest_tau, ts, p.rest_b0, p.rest_b2, p.rest_a2)
-            d0, d1, d2 = acc[0] - l0, acc[1] - l1, acc[2] - l2
-            if d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_acc_sq:
-                state[O_REST_T] = 0.0
-                state[O_REST] = 0.0
-        ai = rotate_scalar(_quat(state, O_QGYR), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
-        ready, n = _lp_begin(state, B_ACC)  # Alg. 1 l. 10
-        f0 = _lp(state, B_ACC + 2, ai[0], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-        f1 = _lp(state, B_ACC + 4, ai[1], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-        f2 = _lp(state, B_ACC + 6, ai[2], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-        _lp_end(state, B_ACC, 3, ready, n, p.tau_acc, ts, mod.acc_b0, mod.acc_b2, mod.acc_a2)
-        qa = _quat(state, O_QACC)
-        ae = rotate_scalar(qa, (f0, f1, f2))  # Alg. 1 l. 11
-        na = math.sqrt(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2])
-        if na > 0.0 and na < math.inf:
-            rn = 1.0 / na
-            ax, ay, az = ae[0] * rn, ae[1] * rn, ae[2] * rn  # Alg. 1 l. 12
-            qw = math.sqrt(max(0.5 * (az + 1.0), 0.0))  # Alg. 1 l. 13
-            if qw > 1e-6:  # Alg. 1 l. 14
-                h = 0.5 / qw
-                corr = (qw, ay * h, -ax * h, 0.0)
-            else:  # a points down: the 180° correction about any horizontal axis
-                corr = (0.0, 1.0, 0.0, 0.0)
-            qa = _unit(multiply_scalar(corr, qa))
-            state[O_QACC], state[O_QACC + 1], state[O_QACC + 2], state[O_QACC + 3] = qa
-            state[4] = 1.0
 
-            if rest_bias or p.motion_bias > 0.5:  # gyro bias estimation (B1)-(B5)
-                b0, b1, b2 = state[O_BIAS], state[O_BIAS + 1], state[O_BIAS + 2]
-                q6 = multiply_scalar(qa, _quat(state, O_QGYR))  # Alg. 1 l. 15
-                have_q6 = True
-                r = _matrix(q6)  # R(q_6D)
-                rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
-                rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2
-                ready, n = _lp_begin(state, B_R)  # R̄ = LP₂(R; τ_acc)
-                r00 = _lp(state, B_R + 2, r[0], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r01 = _lp(state, B_R + 4, r[1], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r02 = _lp(state, B_R + 6, r[2], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r10 = _lp(state, B_R + 8, r[3], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r11 = _lp(state, B_R + 10, r[4], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r12 = _lp(state, B_R + 12, r[5], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r20 = _lp(state, B_R + 14, r[6], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r21 = _lp(state, B_R + 16, r[7], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                r22 = _lp(state, B_R + 18, r[8], ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                _lp_end(state, B_R, 9, ready, n, p.tau_acc, ts, mod.acc_b0, mod.acc_b2, mod.acc_a2)
-                ready, n = _lp_begin(state, B_RB)  # (R b̂)‾ = LP₂(R b̂; τ_acc), x and y
-                rb0 = _lp(state, B_RB + 2, rb0, ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                rb1 = _lp(state, B_RB + 4, rb1, ready, n, mod.acc_b0, mod.acc_b1, mod.acc_b2, mod.acc_a1, mod.acc_a2)
-                _lp_end(state, B_RB, 2, ready, n, p.tau_acc, ts, mod.acc_b0, mod.acc_b2, mod.acc_a2)
-                _bias_predict(state, p)  # (B1)
-                P = (state[O_P], state[O_P + 1], state[O_P + 2], state[O_P + 3], state[O_P + 4],
-                     state[O_P + 5], state[O_P + 6], state[O_P + 7], state[O_P + 8])
-                if rest_bias and state[O_REST] > 0.5:  # (B2): y = ω̄, M = I, P Mᵀ = P
-                    w = p.bias_w_rest
-                    _bias_update(state, p, state[O_GYR_LP] - b0, state[O_GYR_LP + 1] - b1,
-                                 state[O_GYR_LP + 2] - b2, P,
-                                 (P[0] + w, P[1], P[2], P[3], P[4] + w, P[5], P[6], P[7], P[8] + w))
-                elif p.motion_bias > 0.5:  # (B3): M = R̄
-                    ex = -ay * p.inv_ts + rb0 - (r00 * b0 + r01 * b1 + r02 * b2)
-                    ey = ax * p.inv_ts + rb1 - (r10 * b0 + r11 * b1 + r12 * b2)
-                    ez = -(r20 * b0 + r21 * b1 + r22 * b2)
-                    m = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
-                    pmt = _mmt(P, m)  # P Mᵀ
-                    s = _mm(m, pmt)  # M P Mᵀ
-                    _bias_update(state, p, ex, ey, ez, pmt,
-                                 (s[0] + mod.bias_w_motion, s[1], s[2], s[3], s[4] + mod.bias_w_motion, s[5],
-                                  s[6], s[7], s[8] + mod.bias_w_vertical))
-                _clip_bias(state, p)
-
-    if not have_q6:
-        q6 = multiply_scalar(_quat(state, O_QACC), _quat(state, O_QGYR))  # Alg. 1 l. 15
-    k = 0.0
-
-    # ---------------- magnetometer (9D) ----------------
-    if p.use_mag > 0.5 and vector_ok(mag):
-        me = rotate_scalar(q6, (mag[0], mag[1], mag[2]))  # Alg. 1 l. 17
-        if p.mag_rejection > 0.5:
-            nrm = math.sqrt(me[0] * me[0] + me[1] * me[1] + me[2] * me[2])  # (M1)
-            dip = -math.asin(min(max(me[2] / nrm, -1.0), 1.0))
-            if p.mag_cur_tau > 0.0:
-                ready, n = _lp_begin(state, B_MAG)
-                nrm = _lp(state, B_MAG + 2, nrm, ready, n, p.mag_b0, p.mag_b1, p.mag_b2, p.mag_a1, p.mag_a2)
-                dip = _lp(state, B_MAG + 4, dip, ready, n, p.mag_b0, p.mag_b1, p.mag_b2, p.mag_a1, p.mag_a2)
-                _lp_end(state, B_MAG, 2, ready, n, p.mag_cur_tau, ts, p.mag_b0, p.mag_b2, p.mag_a2)
-            ref_n = state[O_MAG_REF_NORM]  # (M2)
-            if abs(nrm - ref_n) < p.mag_norm_th * ref_n and abs(dip - state[O_MAG_REF_DIP]) < p.mag_dip_th:
-                state[O_MAG_UNDIST_T] += ts
-                if state[O_MAG_UNDIST_T] >= p.mag_min_undisturbed_t:
-                    state[O_MAG_DIST] = 0.0
-                    state[O_MAG_REF_NORM] += p.k_mag_ref * (nrm - ref_n)
-                    state[O_MAG_REF_DIP] += p.k_mag_ref * (dip - state[O_MAG_REF_DIP])
-            else:
-                state[O_MAG_UNDIST_T] = 0.0
-                state[O_MAG_DIST] = 1.0
-            cand_n = state[O_MAG_CAND_NORM]  # (M3)
-            if abs(nrm - cand_n) < p.mag_norm_th * cand_n and abs(dip - state[O_MAG_CAND_DIP]) < p.mag_dip_th:
-                g0, g1, g2 = state[O_GYR_LP], state[O_GYR_LP + 1], state[O_GYR_LP + 2]
-                if g0 * g0 + g1 * g1 + g2 * g2 >= p.mag_new_min_gyr_sq:  # ‖ω̄‖ ≥ ω_new,min
-                    state[O_MAG_CAND_T] += ts
-                state[O_MAG_CAND_NORM] += p.k_mag_ref * (nrm - cand_n)
-                state[O_MAG_CAND_DIP] += p.k_mag_ref * (dip - state[O_MAG_CAND_DIP])
-                if state[O_MAG_DIST] > 0.5 and (state[O_MAG_CAND_T] >= p.mag_new_time or (
-                        state[O_MAG_REF_NORM] == 0.0 and state[O_MAG_CAND_T] >= p.mag_new_first_time)):
-                    state[O_MAG_REF_NORM] = state[O_MAG_CAND_NORM]
-                    state[O_MAG_REF_DIP] = state[O_MAG_CAND_DIP]
-                    state[O_MAG_DIST] = 0.0
-                    state[O_MAG_UNDIST_T] = p.mag_min_undisturbed_t
-            else:
-                state[O_MAG_CAND_T] = 0.0
-                state[O_MAG_CAND_NORM] = nrm
-                state[O_MAG_CAND_DIP] = dip
-        dis = _wrap(math.atan2(me[0], me[1]) - state[O_DELTA])  # Alg. 1 l. 18-19
-        k = mod.k_mag
-        if p.mag_rejection > 0.5:  # (M4)
-            if state[O_MAG_DIST] > 0.5:
-                if state[O_MAG_REJECT_T] <= p.mag_max_rejection_t:
-                    state[O_MAG_REJECT_T] += ts
-                    k = 0.0
-                else:
-                    k = k / p.mag_rejection_factor
-            else:
-                state[O_MAG_REJECT_T] = max(state[O_MAG_REJECT_T] - p.mag_rejection_factor * ts, 0.0)
-        kinit = state[O_K_MAG_INIT]  # (M5): k ≥ 1/N for the N-th sample while 1/N·τ_mag ≥ Ts
-        if kinit != 0.0:
-            k = max(k, kinit)
-            kinit = kinit / (kinit + 1.0)
-            state[O_K_MAG_INIT] = 0.0 if kinit * p.tau_mag < ts else kinit
-        state[O_DELTA] = _wrap(state[O_DELTA] + k * dis)  # Alg. 1 l. 19
-
-    # ---------------- output ----------------
+@njit(cache=True, inline="always")
+def update_output(st, p, q6, k, diag):
+    """The output orientation (Alg. 1 l. 21 in 9D, q_6D in 6D) and the diagnostics, with k the
+    heading gain of this sample."""
     if p.use_mag > 0.5:  # Alg. 1 l. 21: q_9D = [cos δ/2, 0, 0, sin δ/2] ⊗ q_6D
-        h = 0.5 * state[O_DELTA]
+        h = 0.5 * st.delta
         c, s = math.cos(h), math.sin(h)
         q = (c * q6[0] - s * q6[3], c * q6[1] - s * q6[2], c * q6[2] + s * q6[1], c * q6[3] + s * q6[0])
     else:
         q = q6
-    state[0], state[1], state[2], state[3] = q
-    diag[0] = state[O_REST]
-    diag[1] = state[O_MAG_DIST] if p.use_mag > 0.5 else 0.0
-    diag[2] = state[O_BIAS]
-    diag[3] = state[O_BIAS + 1]
-    diag[4] = state[O_BIAS + 2]
-    diag[5] = math.sqrt(max(state[O_P], state[O_P + 4], state[O_P + 8]))
-    diag[6] = state[O_DELTA]
+    _set4(st.quat, q)
+    diag[0] = st.rest_detected
+    diag[1] = st.mag_dist_detected if p.use_mag > 0.5 else 0.0
+    diag[2] = st.bias[0]
+    diag[3] = st.bias[1]
+    diag[4] = st.bias[2]
+    diag[5] = math.sqrt(max(st.bias_p[0], st.bias_p[4], st.bias_p[8]))
+    diag[6] = st.delta
     diag[7] = k
 
 
 @njit(cache=True, inline="always")
-def base_modulation(p) -> "CoreModulation":
-    """The modulated coefficients at their settings' values (the core without learning)."""
-    return CoreModulation(p.acc_b0, p.acc_b1, p.acc_b2, p.acc_a1, p.acc_a2, p.k_mag, p.bias_w_motion,
-                          p.bias_w_vertical, p.rest_th_gyr_sq, p.rest_th_acc_sq)
+def core_update(st, p, mod, gyr, acc, mag, dt, diag):
+    """One sample of the VQF core (module docstring) on the state record ``st`` with coefficients
+    ``p`` and the modulated ones ``mod``. Bad samples (policy of ``filters.base``): an invalid
+    gyro sample or Δt skips ``update_gyr``, an invalid accelerometer sample ``update_acc`` and
+    ``update_bias``, an invalid magnetometer sample ``update_mag``. diag: see
+    ``VQFCoreFilter.diagnostic_names``."""
+    if gyro_valid(gyr) and dt_valid(dt, p.max_dt):
+        update_gyr(st, p, mod, gyr, dt)
+    have_q6 = False  # q_6D is computed once per sample, in the bias estimation when it runs
+    q6 = (1.0, 0.0, 0.0, 0.0)
+    if vector_ok(acc):
+        corrected, ax, ay = update_acc(st, p, mod, acc)
+        if corrected and (p.rest_bias > 0.5 or p.motion_bias > 0.5):
+            q6 = update_bias(st, p, mod, ax, ay)
+            have_q6 = True
+    if not have_q6:
+        q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+    k = 0.0
+    if p.use_mag > 0.5 and vector_ok(mag):
+        k = update_mag(st, p, mod, mag, q6)
+    update_output(st, p, q6, k, diag)
 
 
 @njit(cache=True)
 def vqf_core_step(state, params, gyr, acc, mag, dt, diag):
-    """One sample of the VQF core (module docstring). diag: see ``VQFCoreFilter.diagnostic_names``."""
-    core_update(state, params, base_modulation(params), gyr, acc, mag, dt, diag)
+    """One sample of the VQF core (module docstring) on the flat ``state`` (read as the record
+    ``CORE_STATE``). diag: see ``VQFCoreFilter.diagnostic_names``."""
+    core_update(_core_state(state), params, params.modulation, gyr, acc, mag, dt, diag)
 
 
 class VQFCoreFilter(OrientationFilter):
@@ -715,63 +700,68 @@ class VQFCoreFilter(OrientationFilter):
     Settings = VQFCoreSettings
     Coefficients = VQFCoreCoefficients
     state_names = _STATE_NAMES
+    #: the numpy structured dtype of the whole flat state (``filters.base.state_record``)
+    state_dtype = CORE_STATE
     diagnostic_names = _DIAG_NAMES
     step = vqf_core_step
 
     def _coefficients(self) -> dict:
         s, ts = self.settings, self.Ts
-        acc = butterworth_lp_coefficients(s.tau_acc, ts)
-        rest = butterworth_lp_coefficients(s.rest_filter_tau, ts)
-        mag = butterworth_lp_coefficients(s.mag_current_tau, ts) if s.mag_current_tau > 0 else (1.0, 0.0, 0.0, 0.0, 0.0)
         # (B5): variances in (rad/s)²
         p_motion = (s.bias_sigma_motion * _DEG) ** 2
         p_rest = (s.bias_sigma_rest * _DEG) ** 2
         v = (_BIAS_DRIFT_DEG_S * _DEG) ** 2 * ts / s.bias_forgetting_time
         w_motion = p_motion * p_motion / v + p_motion
+        modulation = CoreModulation(
+            acc_lp=lp_coefficients(s.tau_acc, ts), k_mag=gain_from_tau(s.tau_mag, ts), bias_w_motion=w_motion,
+            bias_w_vertical=w_motion / max(s.bias_vertical_forgetting_factor, 1e-10),
+            rest_th_gyr_sq=(s.rest_th_gyr * _DEG) ** 2, rest_th_acc_sq=s.rest_th_acc ** 2)
         return {
-            "ts": ts, "inv_ts": 1.0 / ts, "tau_acc": s.tau_acc, "acc_b0": acc[0], "acc_b1": acc[1], "acc_b2": acc[2], "acc_a1": acc[3], "acc_a2": acc[4],
-            "k_mag": gain_from_tau(s.tau_mag, ts), "tau_mag": s.tau_mag,
+            "ts": ts, "inv_ts": 1.0 / ts, "tau_acc": s.tau_acc, "modulation": modulation, "tau_mag": s.tau_mag,
             "motion_bias": float(s.motion_bias_est_enabled), "rest_bias": float(s.rest_bias_est_enabled),
             "mag_rejection": float(s.mag_dist_rejection_enabled),
-            "bias_p0": (s.bias_sigma_init * _DEG) ** 2, "bias_v": v, "bias_w_motion": w_motion,
-            "bias_w_vertical": w_motion / max(s.bias_vertical_forgetting_factor, 1e-10),
+            "bias_p0": (s.bias_sigma_init * _DEG) ** 2, "bias_v": v,
             "bias_w_rest": p_rest * p_rest / v + p_rest, "bias_clip": s.bias_clip * _DEG,
-            "rest_tau": s.rest_filter_tau, "rest_b0": rest[0], "rest_b1": rest[1], "rest_b2": rest[2], "rest_a1": rest[3],
-            "rest_a2": rest[4], "rest_th_gyr_sq": (s.rest_th_gyr * _DEG) ** 2, "rest_th_acc_sq": s.rest_th_acc ** 2,
-            "rest_min_t": s.rest_min_t,
-            "mag_cur_tau": s.mag_current_tau, "mag_b0": mag[0], "mag_b1": mag[1], "mag_b2": mag[2], "mag_a1": mag[3],
-            "mag_a2": mag[4], "k_mag_ref": gain_from_tau(s.mag_ref_tau, ts), "mag_norm_th": s.mag_norm_th,
+            "rest_tau": s.rest_filter_tau, "rest_lp": lp_coefficients(s.rest_filter_tau, ts),
+            "rest_min_t": s.rest_min_t, "mag_cur_tau": s.mag_current_tau,
+            "mag_lp": lp_coefficients(s.mag_current_tau, ts) if s.mag_current_tau > 0 else LowPass(4.0, 0.0),
+            "k_mag_ref": gain_from_tau(s.mag_ref_tau, ts), "mag_norm_th": s.mag_norm_th,
             "mag_dip_th": s.mag_dip_th * _DEG, "mag_new_time": s.mag_new_time, "mag_new_first_time": s.mag_new_first_time,
             "mag_new_min_gyr_sq": (s.mag_new_min_gyr * _DEG) ** 2, "mag_min_undisturbed_t": s.mag_min_undisturbed_time,
             "mag_max_rejection_t": s.mag_max_rejection_time, "mag_rejection_factor": s.mag_rejection_factor,
         }
 
+    @property
+    def record(self):
+        """The state as a named record (``CORE_STATE``, or the subclass's): a view, writes go to ``state``."""
+        return self.state.view(self.state_dtype).view(np.recarray)[0]
+
     def reset(self):
         """Initial state: identity q_gyr, q_acc; δ = 0; b̂ = 0 with P = P₀ I; magnetic field
         taken as disturbed with no reference yet; every low-pass back in its averaging phase."""
         super().reset()
-        st = self.state
-        st[O_QGYR] = 1.0
-        st[O_QACC] = 1.0
+        st = self.record
+        st.q_gyr[0] = 1.0
+        st.q_acc[0] = 1.0
         p0 = self.params.bias_p0
-        st[O_P] = st[O_P + 4] = st[O_P + 8] = p0
-        st[O_MAG_DIST] = 1.0
-        st[O_MAG_REJECT_T] = self.params.mag_max_rejection_t
-        st[O_MAG_CAND_NORM] = -1.0
-        st[O_K_MAG_INIT] = 1.0
+        st.bias_p[0] = st.bias_p[4] = st.bias_p[8] = p0
+        st.mag_dist_detected = 1.0
+        st.mag_reject_t = self.params.mag_max_rejection_t
+        st.mag_cand_norm = -1.0
+        st.k_mag_init = 1.0
 
     def set_quat(self, q):
         """Set the output orientation (sensor -> ENU) and mark the filter initialised. The
         almost-inertial frame, the low-passes, δ and the bias are kept; q_acc absorbs the change
         (q = [cos δ/2, 0, 0, sin δ/2] ⊗ q_acc ⊗ q_gyr; in 6D δ is not applied)."""
         super().set_quat(q)
-        st = self.state
-        qo = st[:4].copy()
-        h = 0.5 * st[O_DELTA] if self.use_mag else 0.0
+        st = self.record
+        qo = st.quat.copy()
+        h = 0.5 * st.delta if self.use_mag else 0.0
         qz_inv = np.array([math.cos(h), 0.0, 0.0, -math.sin(h)])
-        qg_conj = st[O_QGYR:O_QGYR + 4] * np.array([1.0, -1.0, -1.0, -1.0])
+        qg_conj = st.q_gyr * np.array([1.0, -1.0, -1.0, -1.0])
         qa = _qmul(_qmul(qz_inv, qo), qg_conj)
-        st[O_QACC:O_QACC + 4] = qa / np.linalg.norm(qa)
+        st.q_acc[:] = qa / np.linalg.norm(qa)
 
 
 def _qmul(p, q):

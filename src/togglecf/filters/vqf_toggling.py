@@ -5,7 +5,8 @@ The VQF core (``filters.vqf_core``) runs unchanged; per sample, the predictions
 acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulation``):
 
 1. confidence      c = max_s p_s / Σ_s p_s;   λ = clip((c − c₀) / (1 − c₀), 0, 1)
-   (``confidence_floor`` c₀: at or below it the learned values are not trusted at all)
+   (``confidence_floor`` c₀: at or below it the learned values are not trusted at all; the rule,
+   and how it differs from the toggling CF's hard switch, is in ``filters.prediction``)
 2. time constants  ln τ = λ Σ_s (p_s / Σp) ln τ_s + (1 − λ) ln τ_core     for τ_acc, τ_mag,
    the motion-bias standard deviation σ_motion and the rest thresholds th_ω, th_a (a geometric
    blend: the probabilities mix rates, not seconds); each per-state value is bounded
@@ -34,24 +35,32 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import NamedTuple, get_type_hints
 
 import numpy as np
 from numba import njit
 
 from togglecf.core.quaternion import rotate_scalar
-from togglecf.filters.toggling import N_PRED_NOISE, PredictionDrivenFilter
+from togglecf.filters.base import record_fields, record_view, state_record
+from togglecf.filters.prediction import (
+    PredictionLayout,
+    back_off,
+    blend_trust,
+    class_evidence,
+    predicted_disturbance,
+    remove_noise,
+)
+from togglecf.filters.toggling import PredictionDrivenFilter
 from togglecf.filters.vqf_core import (
+    CORE_STATE_FIELDS,
     CoreModulation,
     VQFCoreCoefficients,
     VQFCoreFilter,
     VQFCoreSettings,
     bias_noise_w,
-    butterworth_lp_coefficients,
-    O_MAG_REF_DIP,
-    O_MAG_REF_NORM,
     core_update,
     gain_from_tau,
+    lp_coefficients,
 )
 
 __all__ = ["VQFTogglingFilter", "VQFTogglingSettings", "VQFTogglingCoefficients", "vqf_toggling_step",
@@ -151,63 +160,54 @@ class VQFTogglingSettings(VQFCoreSettings):
 
 #: the core's coefficients, then the learned ones (logarithms of the per-state values, rad for σ)
 VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
-    *VQFCoreCoefficients.__annotations__.items(),
-    ("n_states", int), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
+    *get_type_hints(VQFCoreCoefficients).items(),
+    ("layout", PredictionLayout), ("ln_tau_acc", np.ndarray), ("ln_tau_mag", np.ndarray), ("ln_sigma_motion", np.ndarray),
     ("ln_rest_th_gyr", np.ndarray), ("ln_rest_th_acc", np.ndarray),
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
     ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
     ("confidence_floor", float), ("mag_disturbance_scale", float), ("noise_weight_acc", float),
     ("noise_weight_mag", float), ("modulation_gain", float), ("mag_backoff_measured", float)])
 
-_MOD_NAMES = tuple(f"mod_{f}" for f in CoreModulation._fields)
-_STATE_NAMES = (VQFCoreFilter.state_names + _MOD_NAMES + ("tau_acc_now", "tau_mag_now", "trust_now")
-                + tuple(f"last_p{s}" for s in range(MAX_STATES + N_PRED_NOISE))
-                + ("ln_tau_acc_target", "ln_tau_mag_target", "ln_tau_acc_now", "ln_tau_mag_now",
-                   "mag_disturbance_predicted", "mag_backoff"))
-O_MOD = 5 + len(VQFCoreFilter.state_names)
-O_NOW = O_MOD + len(_MOD_NAMES)  # τ_acc, τ_mag, λ in use (diagnostics)
-O_LAST_P = O_NOW + 3
-O_FOLLOW = O_LAST_P + MAX_STATES + N_PRED_NOISE  # targets and followed ln τ_acc, ln τ_mag; the heading back-off
-#: the leading ``CoreModulation`` entries that ``_follow`` sets: the τ_acc low-pass coefficients and k_mag
-_N_FOLLOWED = CoreModulation._fields.index("k_mag") + 1
+#: the core's state, then the modulation in use (a ``CoreModulation`` record), τ_acc, τ_mag and λ in
+#: use (diagnostics), the last prediction row (to see changes), the targets and followed ln τ_acc,
+#: ln τ_mag (``_follow``) and the heading back-off (``_heading_gain``)
+STATE_FIELDS = CORE_STATE_FIELDS + (
+    ("mod", record_fields(CoreModulation, "mod_")),
+    ("tau_acc_now", "tau_acc_now"), ("tau_mag_now", "tau_mag_now"), ("trust_now", "trust_now"),
+    ("last_p", tuple(f"last_p{s}" for s in range(PredictionLayout.of(MAX_STATES).size))),
+    ("ln_tau_acc_target", "ln_tau_acc_target"), ("ln_tau_mag_target", "ln_tau_mag_target"),
+    ("ln_tau_acc_now", "ln_tau_acc_now"), ("ln_tau_mag_now", "ln_tau_mag_now"),
+    ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"))
+VQFT_STATE, _STATE_NAMES = state_record(STATE_FIELDS)
+_vqft_state = record_view(VQFT_STATE)
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
 N_CORE_DIAG = len(VQFCoreFilter.diagnostic_names)
 
 
 @njit(cache=True, inline="always")
-def _prediction_changed(state, pred, n):
+def _prediction_changed(st, pred, n):
     """True when the first ``n`` entries of ``pred`` differ from the last ones (NaN equals NaN)."""
     for s in range(n):
-        a, b = pred[s], state[O_LAST_P + s]
+        a, b = pred[s], st.last_p[s]
         if a != b and not (a != a and b != b):
             return True
     return False
 
 
 @njit(cache=True)
-def modulate(state, p, pred):
+def modulate(st, p, pred):
     """Steps 1–3: blend the per-state values with the probabilities in ``pred`` and store the
-    resulting ``CoreModulation`` (and the prediction) in the state. Returns (τ_acc, τ_mag, λ)."""
-    ns = p.n_states
-    total = 0.0
-    top = 0.0
-    ok = True
-    for s in range(ns + N_PRED_NOISE):
-        state[O_LAST_P + s] = pred[s]
-    for s in range(ns):
-        v = pred[s]
-        if not (v >= 0.0 and v < math.inf):
-            ok = False
-        else:
-            total += v
-            top = max(top, v)
-    lam = 0.0
+    resulting ``CoreModulation`` (and the prediction) in the state record. Returns (τ_acc, τ_mag, λ)."""
+    layout = p.layout
+    for s in range(layout.size):
+        st.last_p[s] = pred[s]
+    valid, top, total = class_evidence(layout, pred)  # step 1 (filters.prediction)
+    lam = blend_trust(valid, top, total, p.confidence_floor)  # the learned VQF's fallback rule: λ = 0, the core
     la, lm, ls = p.ln_tau_acc_core, p.ln_tau_mag_core, p.ln_sigma_motion_core
     lg, lc = p.ln_rest_th_gyr_core, p.ln_rest_th_acc_core
-    if ok and total > 0.0:  # step 1
-        lam = min(max((top / total - p.confidence_floor) / (1.0 - p.confidence_floor), 0.0), 1.0)
+    if valid:
         ma, mm, msg, mg, mc = 0.0, 0.0, 0.0, 0.0, 0.0
-        for s in range(ns):  # step 2
+        for s in range(layout.n_states):  # step 2
             w = pred[s] / total
             ma += w * p.ln_tau_acc[s]
             mm += w * p.ln_tau_mag[s]
@@ -220,81 +220,75 @@ def modulate(state, p, pred):
         lg = lam * mg + (1.0 - lam) * lg
         lc = lam * mc + (1.0 - lam) * lc
     tau_acc, tau_mag = math.exp(la), math.exp(lm)
-    b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)  # step 3
-    w_motion = bias_noise_w(math.exp(ls), p.bias_v)
+    w_motion = bias_noise_w(math.exp(ls), p.bias_v)  # step 3
     e_pred = 0.0  # the predicted disturbance (|η̂_m| / σ_m)² (no prediction: NaN, none)
     if p.mag_disturbance_scale > 0.0:
-        e0, e1, e2 = pred[ns + 3], pred[ns + 4], pred[ns + 5]
-        e = (e0 * e0 + e1 * e1 + e2 * e2) / (p.mag_disturbance_scale * p.mag_disturbance_scale)
-        if e >= 0.0:  # False for NaN
-            e_pred = e
-    k_mag = gain_from_tau(tau_mag, p.ts)  # the back-off (e_pred): _heading_gain, every sample
-    mod = (b0, b1, b2, a1, a2, k_mag, w_motion, w_motion * (p.bias_w_vertical / p.bias_w_motion),
-           math.exp(2.0 * lg), math.exp(2.0 * lc))
-    first = 0 if p.modulation_gain >= 1.0 else _N_FOLLOWED  # followed: τ_acc's coefficients and k_mag by _follow
-    for i in range(first, len(mod)):
-        state[O_MOD + i] = mod[i]
-    state[O_FOLLOW], state[O_FOLLOW + 1], state[O_FOLLOW + 4] = la, lm, e_pred
+        e_pred = predicted_disturbance(layout, pred, p.mag_disturbance_scale)
+    m = st.mod
+    if p.modulation_gain >= 1.0:  # else τ_acc's low-pass and k_mag follow (_follow, _heading_gain)
+        acc_lp = lp_coefficients(tau_acc, p.ts)
+        m.acc_lp.k, m.acc_lp.decay = acc_lp.k, acc_lp.decay
+        m.k_mag = gain_from_tau(tau_mag, p.ts)  # the back-off (e_pred): _heading_gain, every sample
+    m.bias_w_motion = w_motion
+    m.bias_w_vertical = w_motion * (p.modulation.bias_w_vertical / p.modulation.bias_w_motion)
+    m.rest_th_gyr_sq = math.exp(2.0 * lg)
+    m.rest_th_acc_sq = math.exp(2.0 * lc)
+    st.ln_tau_acc_target, st.ln_tau_mag_target, st.mag_disturbance_predicted = la, lm, e_pred
     return tau_acc, tau_mag, lam
 
 
 @njit(cache=True)
-def _follow(state, p):
+def _follow(st, p):
     """``modulation_tau``: ln τ_acc and ln τ_mag one step towards their targets (first-order
     low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves (k_mag:
     ``_heading_gain``, every sample)."""
     k = p.modulation_gain
-    la, lm = state[O_FOLLOW + 2], state[O_FOLLOW + 3]
-    ta, tm = state[O_FOLLOW], state[O_FOLLOW + 1]
+    la, lm = st.ln_tau_acc_now, st.ln_tau_mag_now
+    ta, tm = st.ln_tau_acc_target, st.ln_tau_mag_target
     if la != ta:
         la += k * (ta - la)
         if abs(ta - la) < 1e-9:
             la = ta
-        state[O_FOLLOW + 2] = la
+        st.ln_tau_acc_now = la
         tau_acc = math.exp(la)
-        b0, b1, b2, a1, a2 = butterworth_lp_coefficients(tau_acc, p.ts)
-        state[O_MOD], state[O_MOD + 1], state[O_MOD + 2], state[O_MOD + 3], state[O_MOD + 4] = b0, b1, b2, a1, a2
-        state[O_NOW] = tau_acc
+        acc_lp = lp_coefficients(tau_acc, p.ts)
+        st.mod.acc_lp.k, st.mod.acc_lp.decay = acc_lp.k, acc_lp.decay
+        st.tau_acc_now = tau_acc
     if lm != tm:
         lm += k * (tm - lm)
         if abs(tm - lm) < 1e-9:
             lm = tm
-        state[O_FOLLOW + 3] = lm
-        state[O_NOW + 1] = math.exp(lm)
+        st.ln_tau_mag_now = lm
+        st.tau_mag_now = math.exp(lm)
 
 
 @njit(cache=True, inline="always")
-def _field_deviation_sq(state, mag):
+def _field_deviation_sq(st, mag):
     """The disturbance the magnetometer shows [µT²]: the least |m − m_ref|² over the unknown
     azimuth, from the field norm n and dip d of ``mag`` (dip in the previous sample's earth frame)
     and the core's reference n_ref, d_ref (M2): n² + n_ref² − 2 n n_ref cos(d − d_ref). 0 while
     the core has no reference yet, or for an invalid sample."""
-    n_ref = state[O_MAG_REF_NORM]
+    n_ref = st.mag_ref_norm
     n2 = mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]
     if not (n_ref > 0.0 and n2 > 0.0 and n2 < math.inf):
         return 0.0
     n = math.sqrt(n2)
-    mz = rotate_scalar((state[0], state[1], state[2], state[3]), (mag[0], mag[1], mag[2]))[2]
+    q = st.quat
+    mz = rotate_scalar((q[0], q[1], q[2], q[3]), (mag[0], mag[1], mag[2]))[2]
     dip = -math.asin(min(max(mz / n, -1.0), 1.0))
-    return max(n2 + n_ref * n_ref - 2.0 * n * n_ref * math.cos(dip - state[O_MAG_REF_DIP]), 0.0)
+    return max(n2 + n_ref * n_ref - 2.0 * n * n_ref * math.cos(dip - st.mag_ref_dip), 0.0)
 
 
 @njit(cache=True, inline="always")
-def _heading_gain(state, p, mag):
+def _heading_gain(st, p, mag):
     """Step 3's k_mag for this sample: the followed τ_mag's gain divided by the back-off
     1 + e, e = (|η̂_m| / σ_m)², with ``mag_backoff_measured`` at most the disturbance the
     magnetometer itself shows, (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``)."""
-    e = state[O_FOLLOW + 4]
+    e = st.mag_disturbance_predicted
     if p.mag_backoff_measured > 0.5 and e > 0.0:
-        e = min(e, _field_deviation_sq(state, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
-    state[O_FOLLOW + 5] = 1.0 + e
-    state[O_MOD + 5] = gain_from_tau(state[O_NOW + 1], p.ts) / (1.0 + e)
-
-
-@njit(cache=True, inline="always")
-def _stored_modulation(state):
-    return CoreModulation(state[O_MOD], state[O_MOD + 1], state[O_MOD + 2], state[O_MOD + 3], state[O_MOD + 4],
-                          state[O_MOD + 5], state[O_MOD + 6], state[O_MOD + 7], state[O_MOD + 8], state[O_MOD + 9])
+        e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
+    st.mag_backoff = 1.0 + e
+    st.mod.k_mag = back_off(gain_from_tau(st.tau_mag_now, p.ts), e)
 
 
 @njit(cache=True)
@@ -302,29 +296,21 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1–5). diag: the core's, then τ_acc [s], τ_mag [s] and
     the trust λ in the learned values (0: fallback to the core)."""
     p = params
-    ns = p.n_states
-    if _prediction_changed(state, pred, ns + (N_PRED_NOISE if p.mag_disturbance_scale > 0.0 else 0)):
-        tau_acc, tau_mag, lam = modulate(state, p, pred)
-        state[O_NOW + 2] = lam
+    st = _vqft_state(state)
+    layout = p.layout
+    if _prediction_changed(st, pred, layout.size if p.mag_disturbance_scale > 0.0 else layout.n_states):
+        tau_acc, tau_mag, lam = modulate(st, p, pred)
+        st.trust_now = lam
         if p.modulation_gain >= 1.0:
-            state[O_NOW], state[O_NOW + 1] = tau_acc, tau_mag
+            st.tau_acc_now, st.tau_mag_now = tau_acc, tau_mag
     if p.modulation_gain < 1.0:
-        _follow(state, p)
+        _follow(st, p)
     if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0:
-        _heading_gain(state, p, mag)
-    eta_ok = True
-    for j in range(N_PRED_NOISE):
-        if not math.isfinite(pred[ns + j]):
-            eta_ok = False
-    if eta_ok:  # step 4
-        w_a, w_m = p.noise_weight_acc, p.noise_weight_mag
-        a_d = (acc[0] - w_a * pred[ns], acc[1] - w_a * pred[ns + 1], acc[2] - w_a * pred[ns + 2])
-        m_d = (mag[0] - w_m * pred[ns + 3], mag[1] - w_m * pred[ns + 4], mag[2] - w_m * pred[ns + 5])
-    else:
-        a_d = (acc[0], acc[1], acc[2])
-        m_d = (mag[0], mag[1], mag[2])
-    core_update(state, p, _stored_modulation(state), gyr, a_d, m_d, dt, diag)  # step 5
-    diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = state[O_NOW], state[O_NOW + 1], state[O_NOW + 2]
+        _heading_gain(st, p, mag)
+    # step 4, the learned VQF's rule (filters.prediction): whenever η̂ is finite
+    _, a_d, m_d = remove_noise(layout, pred, acc, mag, p.noise_weight_acc, p.noise_weight_mag, True)
+    core_update(st, p, st.mod, gyr, a_d, m_d, dt, diag)  # step 5
+    diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = st.tau_acc_now, st.tau_mag_now, st.trust_now
 
 
 class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
@@ -338,13 +324,14 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
     Settings = VQFTogglingSettings
     Coefficients = VQFTogglingCoefficients
     state_names = _STATE_NAMES
+    state_dtype = VQFT_STATE
     diagnostic_names = _DIAG_NAMES
     step = vqf_toggling_step
 
     def _coefficients(self) -> dict:
         s = self.settings
         core = super()._coefficients()
-        return {**core, "n_states": len(s.states), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
+        return {**core, "layout": PredictionLayout.of(len(s.states)), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
                 "ln_tau_mag": np.log(np.array(s.tau_mag_states)),
                 "ln_sigma_motion": np.log(np.array(s.bias_sigma_motion_states) * _DEG),
                 "ln_rest_th_gyr": np.log(np.array(s.rest_th_gyr_states) * _DEG),
@@ -362,14 +349,22 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
         """The core's initial state; the modulation starts at the core's own coefficients (no
         prediction seen yet: NaN probabilities)."""
         super().reset()
-        p = self.params
-        for i, name in enumerate(("acc_b0", "acc_b1", "acc_b2", "acc_a1", "acc_a2", "k_mag", "bias_w_motion",
-                                  "bias_w_vertical", "rest_th_gyr_sq", "rest_th_acc_sq")):
-            self.state[O_MOD + i] = getattr(p, name)
-        self.state[O_NOW:O_NOW + 3] = (self.settings.tau_acc, self.settings.tau_mag, 0.0)
-        self.state[O_LAST_P:O_LAST_P + MAX_STATES + N_PRED_NOISE] = np.nan
-        ln_core = (math.log(self.settings.tau_acc), math.log(self.settings.tau_mag))
-        self.state[O_FOLLOW:O_FOLLOW + 6] = (*ln_core, *ln_core, 0.0, 1.0)
+        st = self.record
+        _store_record(st.mod, self.params.modulation)
+        st.tau_acc_now, st.tau_mag_now, st.trust_now = self.settings.tau_acc, self.settings.tau_mag, 0.0
+        st.last_p[:] = np.nan
+        st.ln_tau_acc_target = st.ln_tau_acc_now = math.log(self.settings.tau_acc)
+        st.ln_tau_mag_target = st.ln_tau_mag_now = math.log(self.settings.tau_mag)
+        st.mag_disturbance_predicted, st.mag_backoff = 0.0, 1.0
 
     def _default_pred(self, n):
         return np.full((n, self.n_predictions), np.nan)
+
+
+def _store_record(rec, values):
+    """Copy the ``NamedTuple`` ``values`` into the record ``rec`` with the same fields (nested ones too)."""
+    for name, v in values._asdict().items():
+        if isinstance(v, tuple):
+            _store_record(rec[name], v)
+        else:
+            rec[name] = v

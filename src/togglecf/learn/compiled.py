@@ -13,7 +13,7 @@ import numpy as np
 
 from togglecf.features.windows import (FEATURE_VERSION, FeatureSchema, FeatureSettings, SchemaMismatchError,
                                        compute_features, feature_schema, window_length)
-from togglecf.filters.toggling import N_PRED_NOISE
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.learn.ranges import range_arrays, windows_out_of_range
 from togglecf.learn.trees import FlatForest, softmax
 
@@ -63,8 +63,10 @@ class CompiledModels:
         self.schema_hash = schema_hash
         # the class in which the gyro bias is learned: the model's rest class
         self.static_state = next((c for c in ("rest", "static") if c in self.class_names), self.class_names[0])
-        if forest.n_outputs != len(self.class_names) + N_PRED_NOISE:
-            raise ValueError(f"forest has {forest.n_outputs} outputs, expected {len(self.class_names)} classes + 6")
+        self.layout = PredictionLayout.of(len(self.class_names))
+        if forest.n_outputs != self.layout.size:
+            raise ValueError(f"forest has {forest.n_outputs} outputs, expected {self.layout.size}: "
+                             f"{len(self.class_names)} class probabilities, η̂_a and η̂_m (filters.prediction)")
 
     @classmethod
     def from_bundle(cls, bundle) -> "CompiledModels":
@@ -118,8 +120,8 @@ class CompiledModels:
         """Prediction rows ``(n, S + 6)`` (class probabilities, η̂_a, η̂_m) of feature rows ``X``;
         NaN rows for the windows out of the training range (``out_of_range``)."""
         m = self.forest.predict_margin(X)
-        k = len(self.class_names)
-        m[:, :k] = softmax(m[:, :k])
+        p = self.layout.probabilities
+        m[:, p] = softmax(m[:, p])
         m[self.out_of_range(X)] = np.nan
         return m
 

@@ -41,6 +41,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
+from togglecf import source_digest
 from togglecf.core.config import BACKENDS
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
@@ -51,7 +52,7 @@ from togglecf.run.config import load_config
 from togglecf.run.lodo import dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
 from togglecf.run.pretrained import train_pretrained
 from togglecf.run.study import load_study_config, run_study
-from togglecf.run.sweep import ResultStore, code_digest
+from togglecf.run.sweep import ResultStore
 from togglecf.run.train import run_training
 from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
 
@@ -68,9 +69,9 @@ log = logging.getLogger("togglecf.main")
 def result_store() -> ResultStore:
     """The classic filters' results shared by the steps (the study's baseline grids, the two-dataset
     study's, Madgwick's TAGP of each left-out dataset): each (filter, parameters, trial file) is
-    computed once. Keyed on the package's source content (``code_digest``), so a code change starts
+    computed once. Keyed on the package's source content (``togglecf.source_digest``), so a code change starts
     an empty store; an old store is simply not read again."""
-    return ResultStore(CACHE_DIR / f"classic-{code_digest()[:16]}.jsonl")
+    return ResultStore(CACHE_DIR / f"classic-{source_digest()[:16]}.jsonl")
 
 
 #: step -> wall time [s] of this run (the time goal of `make run`)

@@ -5,6 +5,7 @@ import sys
 import pandas as pd
 import pytest
 
+from togglecf import source_digest
 from togglecf.parallel import backend as be
 from togglecf.cli.main import main
 from togglecf.data.broad import DatasetIndex
@@ -146,18 +147,17 @@ def test_store_serves_a_trial_under_another_index_by_its_name_there(synth, tmp_p
             assert r.errors == first.results[i][n].errors
 
 
-def test_code_digest_follows_the_source(tmp_path):
-    from togglecf.run.sweep import code_digest
+def test_source_digest_follows_the_source(tmp_path):
 
     (tmp_path / "pkg").mkdir()
     (tmp_path / "pkg" / "a.py").write_text("x = 1\n")
     (tmp_path / "pkg" / "k.c").write_text("int x;\n")
-    d0 = code_digest(tmp_path)
+    d0 = source_digest(tmp_path)
     (tmp_path / "pkg" / "notes.txt").write_text("not code")  # not a source file: same key
-    assert code_digest(tmp_path) == d0
+    assert source_digest(tmp_path) == d0
     (tmp_path / "pkg" / "k.c").write_text("int y;\n")
-    assert code_digest(tmp_path) != d0
-    assert len(code_digest()) == 64
+    assert source_digest(tmp_path) != d0
+    assert len(source_digest()) == 64
 
 
 def test_local_backend_runs_in_process_inside_a_daemon(monkeypatch):

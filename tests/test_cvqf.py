@@ -18,7 +18,7 @@ Tolerances (measured first; C float32 vs Python float64, max angle over all samp
   discrete decisions (rest, magnetic disturbance, new field) matched sample for sample on all
   25 trials; a flip would cost one sample's correction gain (k_mag ~ 4e-4 of the heading error).
   The inputs are float32-rounded for C (rel. 6e-8); the low-passes run in the same "delta" form
-  in both (``vqf_core._lp``, ``tcf_vqf.c`` lp_step: level and increment, exact enough in float32,
+  in both (``vqf_core._lp_bank``, ``tcf_vqf.c`` lp_step: level and increment, exact enough in float32,
   where VQF's direct form II transposed would not be; tcf_vqf.h). Re-measured after Python moved
   from the direct form to that delta form: the same numbers to the digits above.
 

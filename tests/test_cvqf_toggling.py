@@ -6,7 +6,7 @@ out-of-range fallback agree, bad samples do not poison the state, and the state 
 code are reported and small.
 
 Tolerances (measured first; C float32 vs Python float64, max angle over all samples of a trial).
-The C and Python low-passes run in the same "delta" form (level and increment, ``vqf_core._lp``,
+The C and Python low-passes run in the same "delta" form (level and increment, ``vqf_core._lp_bank``,
 ``tcf_vqf.c`` lp_step), so a change of the learned τ_acc continues the same state in both; no
 state conversion at coefficient changes is needed or done.
 

@@ -11,18 +11,29 @@ from pathlib import Path as _Path
 __version__ = "0.1.0"
 
 
+#: the package's files whose content ``source_digest`` covers
+_SOURCE_SUFFIXES = (".py", ".c", ".h", ".json", ".toml")
+
+
+def source_digest(root=None) -> str:
+    """sha256 (hex) of the content of every source file of the package (``root``: another tree),
+    walked in sorted order: the key of the caches an edit must invalidate (numba's compiled kernels
+    below, the results store of ``make run``)."""
+    root = _Path(root) if root is not None else _Path(__file__).resolve().parent
+    h = _hashlib.sha256()
+    for p in sorted(f for f in root.rglob("*") if f.suffix in _SOURCE_SUFFIXES and f.is_file()):
+        h.update(p.relative_to(root).as_posix().encode() + b"\0")
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
 def _numba_cache_dir() -> str:
     """numba's on-disk cache checks only the timestamp of a kernel's own file, not of the
     functions it inlines from other modules: after an edit of ``filters/base.py`` a cached
-    ``ekf_step`` would run the old code. Keying the cache directory on a hash of every source
-    file of the package makes any change start a fresh cache."""
-    root = _Path(__file__).resolve().parent
-    h = _hashlib.sha1()
-    for p in sorted(root.rglob("*.py")):
-        h.update(p.relative_to(root).as_posix().encode())
-        h.update(p.read_bytes())
+    ``ekf_step`` would run the old code. Keying the cache directory on the content of every source
+    file of the package (``source_digest``) makes any change start a fresh cache."""
     base = _os.environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
-    return _os.path.join(base, "togglecf", "numba", f"{__version__}-{h.hexdigest()[:16]}")
+    return _os.path.join(base, "togglecf", "numba", f"{__version__}-{source_digest()[:16]}")
 
 
 if "NUMBA_CACHE_DIR" not in _os.environ:  # must be set before numba is first imported

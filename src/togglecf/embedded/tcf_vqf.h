@@ -20,7 +20,7 @@
  * reports all of these).
  *
  * Low-pass filters: the second-order Butterworth LP_2 in the "delta" form of the Python filter
- * (vqf_core._lp; state: output level v and increment dv, coefficients 4 b0 and beta = 1 - a2,
+ * (vqf_core.LowPass, _lp_bank; state: output level v and increment dv, coefficients 4 b0 and beta = 1 - a2,
  * both small and exactly representable) instead of VQF's direct form II transposed: with
  * tau_acc = 3 s at 286 Hz, a1 and a2 are within 2.3e-3 of -2 and 1, and in float32 the DF2T's
  * DC gain (1 + a1 + a2 = 4 b0 = 2.7e-6) would be off by ~5 % and its rounding noise amplified

@@ -30,6 +30,7 @@ import numpy as np
 from togglecf.core.config import config_path
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import open_index
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.folds import trial_folds
@@ -136,10 +137,11 @@ def oracle_predictions(trial, label_settings, class_names) -> np.ndarray:
     targets = make_targets(trial, label_settings)
     if tuple(targets.state_names) != tuple(class_names):
         raise ValueError(f"label states {targets.state_names} differ from the model's classes {class_names}")
-    pred = np.zeros((trial.n_samples, len(class_names) + 6))
+    layout = PredictionLayout.of(len(class_names))
+    pred = np.zeros((trial.n_samples, layout.size))
     valid = targets.valid & (targets.state >= 0)
     pred[np.flatnonzero(valid), targets.state[valid]] = 1.0
-    pred[~valid, :len(class_names)] = np.nan
+    pred[~valid, layout.probabilities] = np.nan
     return pred
 
 
@@ -434,18 +436,18 @@ class _Fold:
     info: dict
 
 
-def _no_noise(ns):
+def _no_noise(layout: PredictionLayout):
     def transform(p):  # predicted states, no noise removal
         p = p.copy()
-        p[:, ns:] = np.where(np.isnan(p[:, ns:]), np.nan, 0.0)
+        p[:, layout.eta] = np.where(np.isnan(p[:, layout.eta]), np.nan, 0.0)
         return p
     return transform
 
 
-def _one_state(ns):
+def _one_state(layout: PredictionLayout):
     def transform(p):  # noise removal with one fixed gain pair, no state, no rest bias
         p = p.copy()
-        p[:, :ns] = 0.0
+        p[:, layout.probabilities] = 0.0
         p[:, 0] = 1.0
         return p
     return transform
@@ -454,11 +456,11 @@ def _one_state(ns):
 def _ablations(job: _FoldJob, fold: _Fold) -> list:
     """The ablation rows of a fold (module docstring), in table order."""
     cfg, rows = job.cfg, []
-    ns = len(fold.models.class_names)
+    layout = PredictionLayout.of(len(fold.models.class_names))
     if "toggling_only" in cfg.ablations:
-        rows += _toggling_variant(job, fold, "toggling_only", _no_noise(ns), cfg.gains, None)
+        rows += _toggling_variant(job, fold, "toggling_only", _no_noise(layout), cfg.gains, None)
     if "noise_only" in cfg.ablations:
-        rows += _toggling_variant(job, fold, "noise_only", _one_state(ns), replace(cfg.gains, bias_tau=(-1.0,)),
+        rows += _toggling_variant(job, fold, "noise_only", _one_state(layout), replace(cfg.gains, bias_tau=(-1.0,)),
                                   replace(fold.gains9, bias_tau=-1.0))
     if "vqf_taus_only" in cfg.ablations:  # the learned time constants without the noise removal
         rows += _vqf_variant(job, fold, "vqf_taus_only", fold.preds)

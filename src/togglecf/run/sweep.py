@@ -35,27 +35,11 @@ from togglecf.parallel.backend import Backend, LocalBackend, data_location, load
 from togglecf.registry import filter_spec
 from togglecf.run.scoring import TrialResult, grid_points, score_trial, warm_up
 
-__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path", "code_digest",
+__all__ = ["ResultStore", "SweepResult", "run_sweep", "evaluate_trials", "grid_search", "SWEEP_VERSION", "journal_path",
            "format_failures"]
 
 SWEEP_VERSION = f"togglecf-{__version__}/sweep-1"
 JOURNAL = "sweep.jsonl"
-
-
-#: the package's files whose content ``code_digest`` covers
-_CODE_SUFFIXES = (".py", ".c", ".h", ".json", ".toml")
-
-
-def code_digest(root=None) -> str:
-    """sha256 (hex) of the content of every source file of the package (``root``: another tree),
-    walked in sorted order: the key of a cache that code changes must invalidate (a results store
-    shared by the steps of ``make run``), where ``SWEEP_VERSION`` alone would outlive an edit."""
-    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for f in sorted(p for p in root.rglob("*") if p.suffix in _CODE_SUFFIXES and p.is_file()):
-        h.update(f.relative_to(root).as_posix().encode() + b"\0")
-        h.update(f.read_bytes())
-    return h.hexdigest()
 
 
 def journal_path(out_dir) -> Path:

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 from togglecf.core.config import BACKENDS
 from togglecf.core.log import setup_logging
-from togglecf.parallel.backend import BackendError, make_backend
+from togglecf.parallel.backend import BackendError, LocalBackend, make_backend
 from togglecf.run.study import DEFAULT_STUDY_CONFIG, load_study_config, run_study
 
 
@@ -48,7 +48,8 @@ def main(argv=None):
     if args.jobs is not None:
         cfg = replace(cfg, jobs=args.jobs)
     try:
-        backend = make_backend(args.backend, args.scheduler, jobs=min(cfg.jobs or os.cpu_count() or 1, cfg.folds))
+        backend = (LocalBackend(min(cfg.jobs or os.cpu_count() or 1, cfg.folds), start_method="forkserver")
+                   if args.backend == "local" else make_backend(args.backend, args.scheduler))
     except BackendError as exc:
         p.error(str(exc))
     with backend:

@@ -96,6 +96,44 @@ def _fmt_size(v):
     return "-" if v is None else f"{v / 1024:.1f} KiB"
 
 
+def _export_filter(args, riscv: bool, choice) -> tuple[dict, bool]:
+    """The whole filter in C (``--filter``) beside the trees: its report, and whether the size budget
+    of ``--max-bytes`` (``choice``) holds for the trees it ships."""
+    filter_dir = Path(args.out) / "filter"
+    ok = True
+    fs = float(load_bundle(args.models).metadata["sampling_rate"])
+    mode = "6D" if args.six_d else "9D"
+    if args.filter == "vqf_toggling":
+        rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d)
+        forest_size = rep["object_sizes"]["tcf_forest.c"]  # {host, riscv, arm}: {text, data, bss, total}
+        code = rep["code_bytes"]
+        print(f"C learned VQF filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+              f"trees + filter object code {_fmt_size(code['host'])} host, {_fmt_size(code['riscv'])} rv32imc, "
+              f"{_fmt_size(code['arm'])} Cortex-M4F (of which trees {_fmt_size(rep['code_bytes_trees']['host'])} "
+              f"host); kept by a --gc-sections link: {_fmt_size(rep['code_bytes_gc']['riscv'])} rv32imc, "
+              f"{_fmt_size(rep['code_bytes_gc']['arm'])} Cortex-M4F; rate at init (tcf_vqft_init), "
+              f"Arduino/PlatformIO library in {rep['library']}")
+    else:
+        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
+        forest_size = rep["object_sizes"]["tcf_forest.c"]
+        linked = rep.get("linked_riscv")
+        print(f"C filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
+              f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
+              f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
+              + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
+    rep["forest_bytes"] = forest_size
+    if choice is not None:  # the budget holds for what ships: the filter's trees
+        got = (forest_size["riscv"] or forest_size["host"])["total"]
+        choice["filter_forest_bytes"] = got
+        if got > args.max_bytes:
+            hint = ("run the sweep with --full-sweep to find a smaller point" if choice["source"] == "default"
+                    else "choose a smaller --max-bytes")
+            print(f"error: the final models' trees take {got} bytes, over the budget of {args.max_bytes} "
+                  f"(the sweep measured the folds' models): {hint}", file=sys.stderr)
+            ok = False
+    return rep, ok
+
+
 def cmd_export(args) -> int:
     choice = None
     if args.max_bytes is not None:
@@ -138,38 +176,9 @@ def cmd_export(args) -> int:
             print(f"  equivalence (≤ {TOLERANCE:g}) on {rep['n_rows_checked']} windows: "
                   f"{'OK' if rep['ok'] else 'FAILED'} (max {rep['max_abs_diff']:.2e})")
             ok &= rep["ok"]
-    filter_dir = Path(args.out) / "filter"
     if (Path(args.models) / "gains.json").is_file():
-        fs = float(load_bundle(args.models).metadata["sampling_rate"])
-        mode = "6D" if args.six_d else "9D"
-        if args.filter == "vqf_toggling":
-            rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d)
-            forest_size = rep["object_sizes"]["tcf_forest.c"]  # {host, riscv, arm}: {text, data, bss, total}
-            code = rep["code_bytes"]
-            print(f"C learned VQF filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
-                  f"trees + filter object code {_fmt_size(code['host'])} host, {_fmt_size(code['riscv'])} rv32imc, "
-                  f"{_fmt_size(code['arm'])} Cortex-M4F (of which trees {_fmt_size(rep['code_bytes_trees']['host'])} "
-                  f"host); kept by a --gc-sections link: {_fmt_size(rep['code_bytes_gc']['riscv'])} rv32imc, "
-                  f"{_fmt_size(rep['code_bytes_gc']['arm'])} Cortex-M4F")
-        else:
-            rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
-            forest_size = rep["object_sizes"]["tcf_forest.c"]
-            linked = rep.get("linked_riscv")
-            print(f"C filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
-                  f"trees the filter walks {_fmt_size(forest_size['host']['total'])} host, "
-                  f"{_fmt_size(forest_size['riscv'] and forest_size['riscv']['total'])} rv32imc object code"
-                  + (f"; whole filter linked for rv32imc: {linked['flash'] / 1024:.1f} KiB flash" if linked else ""))
-        rep["forest_bytes"] = forest_size
-        reports["filter"] = rep
-        if choice is not None:  # the budget holds for what ships: the filter's trees
-            got = (forest_size["riscv"] or forest_size["host"])["total"]
-            choice["filter_forest_bytes"] = got
-            if got > args.max_bytes:
-                hint = ("run the sweep with --full-sweep to find a smaller point" if choice["source"] == "default"
-                        else "choose a smaller --max-bytes")
-                print(f"error: the final models' trees take {got} bytes, over the budget of {args.max_bytes} "
-                      f"(the sweep measured the folds' models): {hint}", file=sys.stderr)
-                ok = False
+        reports["filter"], filter_ok = _export_filter(args, riscv, choice)
+        ok &= filter_ok
     else:
         print(f"(no C filter: {Path(args.models) / 'gains.json'} is missing; `togglecf train` learns the gains)")
     if not riscv:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import sys
 
-__all__ = ["setup_logging"]
+__all__ = ["setup_logging", "configured_level", "follow_parent_logging"]
 
 _HANDLER_NAME = "togglecf-stderr"
 
@@ -43,3 +43,19 @@ def setup_logging(level: int = logging.INFO) -> logging.Logger:
         logger.addHandler(handler)
     logger.propagate = False
     return logger
+
+
+def configured_level() -> int | None:
+    """The level ``setup_logging`` set in this process, ``None`` when it was not called: what a task
+    started in a fresh worker process (``forkserver``, ``spawn``) passes on, so that its progress
+    reaches the same stderr (``follow_parent_logging``)."""
+    logger = logging.getLogger("togglecf")
+    if any(getattr(h, "name", None) == _HANDLER_NAME for h in logger.handlers):
+        return logger.level
+    return None
+
+
+def follow_parent_logging(level: int | None) -> None:
+    """In a worker: ``setup_logging(level)`` when the parent had it (``configured_level``), else nothing."""
+    if level is not None:
+        setup_logging(level)

@@ -165,66 +165,50 @@ def _scalar_update(P, x, ph, hs, kap, u, z, r, n):
             P[j * NX + i] = v
 
 
-@njit(cache=True)
-def ekf_step(state, params, gyr, acc, mag, dt, diag):
-    """One sample. diag: [acc used, mag used, b̂x, b̂y, b̂z, ‖â‖, orientation std (deg), mag jammed]."""
-    use_mag, max_dt = params.use_mag > 0.5, params.max_dt
-    eta, beta, lam = params.gyro_noise, params.gyro_drift_noise, params.acc_noise
-    xi, nu = params.linacc_noise, params.linacc_decay
-    mu, gam, sig = params.mag_noise, params.mag_disturbance_noise, params.mag_disturbance_decay
-    m_exp, grav, mref_rate = params.expected_mag_strength, params.gravity, params.mag_ref_rate
-    nx = NX if use_mag else 9  # 6D: the magnetic-disturbance block takes no part
-    acc_ok = vector_ok(acc)
-    mag_ok = use_mag and vector_ok(mag)
-    for i in range(8):
-        diag[i] = 0.0
-    P = state[_OFF_P:_OFF_P + NX * NX]
-    if state[4] < 0.5:
-        if initialize_from_sample(state, acc, mag, mag_ok):
-            for i in range(_OFF_B, _OFF_P + NX * NX):
-                state[i] = 0.0
-            for i in range(NX):
-                P[i * NX + i] = P0_DIAG[i]
-            if mag_ok:  # reference field from the first sample
-                mx, my, mz = rotate_scalar(load_quat(state), (mag[0], mag[1], mag[2]))
-                state[_OFF_M] = math.sqrt(mx * mx + my * my)
-                state[_OFF_M + 1] = mz
-        return
-    # --- predict
-    scratch = np.empty(2 * NX + 18)  # the one allocation per sample: x, P hᵀ, two 3×3 blocks
-    for i in range(NX):
-        scratch[i] = 0.0  # x
-    bx, by, bz = state[_OFF_B], state[_OFF_B + 1], state[_OFF_B + 2]
-    q_prev = load_quat(state)
-    q, done = q_prev, False
-    if gyro_valid(gyr):  # the saturation test is on the raw reading, not on ω − b̂ (filters.base)
-        q, done = propagate_gyro(q_prev, (gyr[0] - bx, gyr[1] - by, gyr[2] - bz), dt, max_dt)
-    kap = dt if done else 0.0
-    if done:
-        # body-frame error: δθ_k = Φ δθ_{k-1} − κ δb with Φ = R(Δq)ᵀ, Δq = q⁻_{k-1}* ⊗ q⁻_k. MATLAB's
-        # Q_k omits Φ; without it P_θθ keeps the large heading variance on the wrong body axis
-        # once the sensor turns, and accelerometer updates leak into the heading (BROAD 15: 45°).
-        w, x1, y1, z1 = multiply_scalar((q_prev[0], -q_prev[1], -q_prev[2], -q_prev[3]), q)
-        phi = scratch[2 * NX:2 * NX + 9]  # Φ = R(Δq)ᵀ, row-major
-        phi[0], phi[1], phi[2] = 1 - 2 * (y1 * y1 + z1 * z1), 2 * (x1 * y1 + w * z1), 2 * (x1 * z1 - w * y1)
-        phi[3], phi[4], phi[5] = 2 * (x1 * y1 - w * z1), 1 - 2 * (x1 * x1 + z1 * z1), 2 * (y1 * z1 + w * x1)
-        phi[6], phi[7], phi[8] = 2 * (x1 * z1 + w * y1), 2 * (y1 * z1 - w * x1), 1 - 2 * (x1 * x1 + y1 * y1)
-        tmp = scratch[2 * NX + 9:]
-        for i in range(3):
-            for j in range(3):  # tmp = P_θθ Φᵀ
-                tmp[i * 3 + j] = P[i * NX] * phi[j * 3] + P[i * NX + 1] * phi[j * 3 + 1] + P[i * NX + 2] * phi[j * 3 + 2]
-        for i in range(3):
-            for j in range(3):  # P_θθ = Φ tmp
-                P[i * NX + j] = phi[i * 3] * tmp[j] + phi[i * 3 + 1] * tmp[3 + j] + phi[i * 3 + 2] * tmp[6 + j]
-        for i in range(3):
-            for j in range(i + 1, 3):  # exact symmetry
-                v = 0.5 * (P[i * NX + j] + P[j * NX + i])
-                P[i * NX + j] = v
-                P[j * NX + i] = v
+@njit(cache=True, inline="always")
+def _initialize(state, P, acc, mag, mag_ok):
+    """The first usable sample: orientation from it, b̂ = â = d̂ = 0, P = P₀, the reference field."""
+    if initialize_from_sample(state, acc, mag, mag_ok):
+        for i in range(_OFF_B, _OFF_P + NX * NX):
+            state[i] = 0.0
+        for i in range(NX):
+            P[i * NX + i] = P0_DIAG[i]
+        if mag_ok:  # reference field from the first sample
+            mx, my, mz = rotate_scalar(load_quat(state), (mag[0], mag[1], mag[2]))
+            state[_OFF_M] = math.sqrt(mx * mx + my * my)
+            state[_OFF_M + 1] = mz
+
+
+@njit(cache=True, inline="always")
+def _rotate_covariance(P, q_prev, q, scratch):
+    """Body-frame error: δθ_k = Φ δθ_{k-1} − κ δb with Φ = R(Δq)ᵀ, Δq = q⁻_{k-1}* ⊗ q⁻_k: P_θθ ← Φ P_θθ Φᵀ.
+    MATLAB's Q_k omits Φ; without it P_θθ keeps the large heading variance on the wrong body axis
+    once the sensor turns, and accelerometer updates leak into the heading (BROAD 15: 45°)."""
+    w, x1, y1, z1 = multiply_scalar((q_prev[0], -q_prev[1], -q_prev[2], -q_prev[3]), q)
+    phi = scratch[2 * NX:2 * NX + 9]  # Φ = R(Δq)ᵀ, row-major
+    phi[0], phi[1], phi[2] = 1 - 2 * (y1 * y1 + z1 * z1), 2 * (x1 * y1 + w * z1), 2 * (x1 * z1 - w * y1)
+    phi[3], phi[4], phi[5] = 2 * (x1 * y1 - w * z1), 1 - 2 * (x1 * x1 + z1 * z1), 2 * (y1 * z1 + w * x1)
+    phi[6], phi[7], phi[8] = 2 * (x1 * z1 + w * y1), 2 * (y1 * z1 - w * x1), 1 - 2 * (x1 * x1 + y1 * y1)
+    tmp = scratch[2 * NX + 9:]
     for i in range(3):
-        state[_OFF_A + i] *= nu
-        state[_OFF_D + i] *= sig
-    # --- P⁻ = Q_k from P⁺ (blocks of 3; θ = 0, b = 3, a = 6, d = 9)
+        for j in range(3):  # tmp = P_θθ Φᵀ
+            tmp[i * 3 + j] = P[i * NX] * phi[j * 3] + P[i * NX + 1] * phi[j * 3 + 1] + P[i * NX + 2] * phi[j * 3 + 2]
+    for i in range(3):
+        for j in range(3):  # P_θθ = Φ tmp
+            P[i * NX + j] = phi[i * 3] * tmp[j] + phi[i * 3 + 1] * tmp[3 + j] + phi[i * 3 + 2] * tmp[6 + j]
+    for i in range(3):
+        for j in range(i + 1, 3):  # exact symmetry
+            v = 0.5 * (P[i * NX + j] + P[j * NX + i])
+            P[i * NX + j] = v
+            P[j * NX + i] = v
+
+
+@njit(cache=True, inline="always")
+def _process_noise(P, params, kap, nx):
+    """P⁻ = Q_k from P⁺ (blocks of 3; θ = 0, b = 3, a = 6, d = 9)."""
+    eta, beta = params.gyro_noise, params.gyro_drift_noise
+    xi, nu = params.linacc_noise, params.linacc_decay
+    gam, sig = params.mag_disturbance_noise, params.mag_disturbance_decay
     for i in range(3):
         for j in range(3):
             pbb = P[(3 + i) * NX + 3 + j]
@@ -246,42 +230,98 @@ def ekf_step(state, params, gyr, acc, mag, dt, diag):
         for j in range(9, nx):
             P[i * NX + j] = 0.0
             P[j * NX + i] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _acc_update(state, P, x, ph, params, q, acc, kap):
+    """The accelerometer's three scalar updates: a = ĝ_s + â, ĝ_s = R̂ᵀ [0, 0, g]."""
+    eta, beta, lam, xi = params.gyro_noise, params.gyro_drift_noise, params.acc_noise, params.linacc_noise
+    gx, gy, gz = rotate_inverse_scalar(q, (0.0, 0.0, params.gravity))  # ĝ_s = R̂ᵀ [0, 0, g]
+    ra = lam + xi + kap * kap * (beta + eta)
+    # rows of [ĝ_s]× : (0, −gz, gy), (gz, 0, −gx), (−gy, gx, 0)
+    sk = ((0.0, -gz, gy), (gz, 0.0, -gx), (-gy, gx, 0.0))
+    pred = (gx + state[_OFF_A], gy + state[_OFF_A + 1], gz + state[_OFF_A + 2])
+    for r in range(3):
+        _scalar_update(P, x, ph, sk[r], kap, 6 + r, acc[r] - pred[r], ra, 9)  # δd is decoupled here
+
+
+@njit(cache=True, inline="always")
+def _mag_update(state, P, x, ph, params, q, mag, kap, nx) -> bool:
+    """The magnetometer's three scalar updates (m = R̂ᵀ m_ref + d̂), unless the field is jammed (over
+    twice the expected strength): returns False then."""
+    eta, beta, mu, gam = params.gyro_noise, params.gyro_drift_noise, params.mag_noise, params.mag_disturbance_noise
+    m_exp = params.expected_mag_strength
+    mm2 = mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]
+    if mm2 > 4.0 * m_exp * m_exp:
+        return False
+    mh, mv = state[_OFF_M], state[_OFF_M + 1]
+    mx, my, mz = rotate_inverse_scalar(q, (0.0, mh, mv))  # m̂_s = R̂ᵀ m_ref
+    rm = mu + gam + kap * kap * (beta + eta) * (mh * mh + mv * mv)
+    sk = ((0.0, -mz, my), (mz, 0.0, -mx), (-my, mx, 0.0))
+    pred = (mx + state[_OFF_D], my + state[_OFF_D + 1], mz + state[_OFF_D + 2])
+    for r in range(3):
+        _scalar_update(P, x, ph, sk[r], kap, 9 + r, mag[r] - pred[r], rm, nx)
+    return True
+
+
+@njit(cache=True, inline="always")
+def _correct(state, x, q, mag, mag_used, mref_rate):
+    """q⁺ = q⁻ ⊗ exp(δθ), b̂, â, d̂ += their errors; the reference field tracked slowly (low-pass)."""
+    q = normalize_scalar(multiply_scalar(q, from_rotvec_scalar(x[0], x[1], x[2])))  # q⁺ = q⁻ ⊗ exp(δθ)
+    for i in range(3):
+        state[_OFF_B + i] += x[3 + i]
+        state[_OFF_A + i] += x[6 + i]
+        state[_OFF_D + i] += x[9 + i]
+    if mag_used and mref_rate > 0.0:  # track the reference field slowly (low-pass)
+        mx, my, mz = rotate_scalar(q, (mag[0], mag[1], mag[2]))
+        state[_OFF_M] += mref_rate * (math.sqrt(mx * mx + my * my) - state[_OFF_M])
+        state[_OFF_M + 1] += mref_rate * (mz - state[_OFF_M + 1])
+    return q
+
+
+@njit(cache=True)
+def ekf_step(state, params, gyr, acc, mag, dt, diag):
+    """One sample. diag: [acc used, mag used, b̂x, b̂y, b̂z, ‖â‖, orientation std (deg), mag jammed]."""
+    use_mag = params.use_mag > 0.5
+    nx = NX if use_mag else 9  # 6D: the magnetic-disturbance block takes no part
+    acc_ok = vector_ok(acc)
+    mag_ok = use_mag and vector_ok(mag)
+    for i in range(8):
+        diag[i] = 0.0
+    P = state[_OFF_P:_OFF_P + NX * NX]
+    if state[4] < 0.5:
+        _initialize(state, P, acc, mag, mag_ok)
+        return
+    # --- predict
+    scratch = np.empty(2 * NX + 18)  # the one allocation per sample: x, P hᵀ, two 3×3 blocks
+    for i in range(NX):
+        scratch[i] = 0.0  # x
+    bx, by, bz = state[_OFF_B], state[_OFF_B + 1], state[_OFF_B + 2]
+    q_prev = load_quat(state)
+    q, done = q_prev, False
+    if gyro_valid(gyr):  # the saturation test is on the raw reading, not on ω − b̂ (filters.base)
+        q, done = propagate_gyro(q_prev, (gyr[0] - bx, gyr[1] - by, gyr[2] - bz), dt, params.max_dt)
+    kap = dt if done else 0.0
+    if done:
+        _rotate_covariance(P, q_prev, q, scratch)
+    for i in range(3):
+        state[_OFF_A + i] *= params.linacc_decay
+        state[_OFF_D + i] *= params.mag_disturbance_decay
+    _process_noise(P, params, kap, nx)
     # --- measurement updates (sequential scalar form)
     x = scratch[:NX]
     ph = scratch[NX:]
     if acc_ok:
-        gx, gy, gz = rotate_inverse_scalar(q, (0.0, 0.0, grav))  # ĝ_s = R̂ᵀ [0, 0, g]
-        ra = lam + xi + kap * kap * (beta + eta)
-        # rows of [ĝ_s]× : (0, −gz, gy), (gz, 0, −gx), (−gy, gx, 0)
-        sk = ((0.0, -gz, gy), (gz, 0.0, -gx), (-gy, gx, 0.0))
-        pred = (gx + state[_OFF_A], gy + state[_OFF_A + 1], gz + state[_OFF_A + 2])
-        for r in range(3):
-            _scalar_update(P, x, ph, sk[r], kap, 6 + r, acc[r] - pred[r], ra, 9)  # δd is decoupled here
+        _acc_update(state, P, x, ph, params, q, acc, kap)
         diag[0] = 1.0
     if mag_ok:
-        mm2 = mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]
-        if mm2 > 4.0 * m_exp * m_exp:
-            diag[7] = 1.0
-        else:
-            mh, mv = state[_OFF_M], state[_OFF_M + 1]
-            mx, my, mz = rotate_inverse_scalar(q, (0.0, mh, mv))  # m̂_s = R̂ᵀ m_ref
-            rm = mu + gam + kap * kap * (beta + eta) * (mh * mh + mv * mv)
-            sk = ((0.0, -mz, my), (mz, 0.0, -mx), (-my, mx, 0.0))
-            pred = (mx + state[_OFF_D], my + state[_OFF_D + 1], mz + state[_OFF_D + 2])
-            for r in range(3):
-                _scalar_update(P, x, ph, sk[r], kap, 9 + r, mag[r] - pred[r], rm, nx)
+        if _mag_update(state, P, x, ph, params, q, mag, kap, nx):
             diag[1] = 1.0
+        else:
+            diag[7] = 1.0
     # --- correct
     if diag[0] > 0.5 or diag[1] > 0.5:
-        q = normalize_scalar(multiply_scalar(q, from_rotvec_scalar(x[0], x[1], x[2])))  # q⁺ = q⁻ ⊗ exp(δθ)
-        for i in range(3):
-            state[_OFF_B + i] += x[3 + i]
-            state[_OFF_A + i] += x[6 + i]
-            state[_OFF_D + i] += x[9 + i]
-        if diag[1] > 0.5 and mref_rate > 0.0:  # track the reference field slowly (low-pass)
-            mx, my, mz = rotate_scalar(q, (mag[0], mag[1], mag[2]))
-            state[_OFF_M] += mref_rate * (math.sqrt(mx * mx + my * my) - state[_OFF_M])
-            state[_OFF_M + 1] += mref_rate * (mz - state[_OFF_M + 1])
+        q = _correct(state, x, q, mag, diag[1] > 0.5, params.mag_ref_rate)
     store_quat(state, q)
     diag[2], diag[3], diag[4] = state[_OFF_B], state[_OFF_B + 1], state[_OFF_B + 2]
     diag[5] = math.sqrt(state[_OFF_A] ** 2 + state[_OFF_A + 1] ** 2 + state[_OFF_A + 2] ** 2)

@@ -6,7 +6,8 @@ One small interface for ``tune``, ``evaluate`` and ``train``::
         for out in be.run(fn, [(key, args), ...], desc="tune"):   # streams as tasks finish
             out.key, out.value, out.error                         # error: the exception, or None
 
-* ``LocalBackend(jobs)``: a fork ``ProcessPoolExecutor`` on ``jobs`` processes (default all cores);
+* ``LocalBackend(jobs)``: a fork ``ProcessPoolExecutor`` on ``jobs`` processes (default all cores;
+  ``start_method="forkserver"`` for tasks that train models, see the class);
   ``jobs=1`` (or a single task) runs in this process, in task order. No extra services.
 * ``DaskBackend(scheduler)``: ``client.submit(fn, *args, retries=N)`` per task and
   ``distributed.as_completed``. A task lost with a worker is rescheduled by the scheduler (up to
@@ -98,14 +99,23 @@ class InlineBackend(Backend):
 
 
 class LocalBackend(Backend):
-    """A fork process pool on ``jobs`` processes (default: all cores)."""
+    """A process pool on ``jobs`` processes (default: all cores).
+
+    ``start_method``: ``"fork"`` (default) lets the workers inherit the parent's compiled kernels and
+    loaded data; ``"forkserver"`` starts them from a clean server process, for tasks that train
+    models: XGBoost's OpenMP runtime hangs in a child forked from a process that has already used it
+    (the study's folds and the left-out datasets train, and ``make run`` trains before it forks)."""
 
     name = "local"
+    START_METHODS = ("fork", "forkserver", "spawn")
 
-    def __init__(self, jobs: int | None = None):
+    def __init__(self, jobs: int | None = None, start_method: str = "fork"):
         self.workers = int(jobs or os.cpu_count() or 1)
         if self.workers < 1:
             raise BackendError(f"jobs must be >= 1, got {jobs}")
+        if start_method not in self.START_METHODS:
+            raise BackendError(f"start_method must be one of {list(self.START_METHODS)}, got {start_method!r}")
+        self.start_method = start_method
 
     def run(self, fn, tasks, desc=None, unit="task"):
         tasks = list(tasks)
@@ -113,8 +123,8 @@ class LocalBackend(Backend):
         if self.workers == 1 or len(tasks) <= 1 or mp.current_process().daemon:
             yield from _inline(fn, tasks, desc, unit)
             return
-        # fork: workers inherit the parent's compiled kernels and imported modules
-        with ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=mp.get_context("fork")) as pool:
+        context = mp.get_context(self.start_method)
+        with ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=context) as pool:
             futs = {pool.submit(fn, *args): key for key, args in tasks}
             try:
                 for fut in progress(_cf_as_completed(futs), total=len(futs), desc=desc, unit=unit):

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.log import configured_level, follow_parent_logging
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.filters.toggling import TogglingFilter, TogglingSettings
@@ -99,9 +100,11 @@ def _scored(index: DatasetIndex, names, spec: FilterSpec) -> dict:
     return {n: score_trial(index.load(n), spec)[0] for n in names}
 
 
-def _left_out(left: Path, train: list, model_dir: Path, config, verbose: bool, madgwick: dict) -> dict:
+def _left_out(left: Path, train: list, model_dir: Path, config, verbose: bool, madgwick: dict, log_level) -> dict:
     """One left-out dataset (a task): train on ``train`` into ``model_dir``, score every trial of ``left``
-    (the rows of ``ROWS`` and ``CLASSIC``; Madgwick at its TAGP ``madgwick`` on the training datasets)."""
+    (the rows of ``ROWS`` and ``CLASSIC``; Madgwick at its TAGP ``madgwick`` on the training datasets);
+    ``log_level``: the parent's (``core.log.configured_level``)."""
+    follow_parent_logging(log_level)
     t0 = time.perf_counter()
     log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
     run_training(load_config(config), data_dir=[str(d) for d in train], out=model_dir, verbose=verbose)
@@ -133,9 +136,10 @@ def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs
         beta = madgwick_tagp(train, jobs, store)
         log.info(f"  Madgwick's TAGP on {', '.join(d.name for d in train)}: {beta}")
         model_dir = Path(out_dir) / f"without_{left.name}" / "models"
-        tasks.append((left.name, (left, train, model_dir, config, verbose, beta)))
+        tasks.append((left.name, (left, train, model_dir, config, verbose, beta, configured_level())))
     results = {}
-    backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, len(tasks)))
+    # forkserver: a task trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
+    backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, len(tasks)), start_method="forkserver")
     for outcome in backend.run(_left_out, tasks, desc="leave one dataset out", unit="dataset"):
         if outcome.error is not None:
             raise outcome.error

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from togglecf.core.config import config_path
+from togglecf.core.log import configured_level, follow_parent_logging
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import open_index
 from togglecf.filters.prediction import PredictionLayout
@@ -225,15 +226,15 @@ class _FoldJob:
     names: tuple
     out: Path
     jobs: int
+    log_level: int | None  # the parent's ``configured_level``: a worker logs the fold's progress as it does
 
 
-#: trials loaded by this process before its pool forked: (root, name) -> Trial (inherited by the workers)
+#: trials loaded by this process: (root, name) -> Trial (a worker loads them once for all its folds)
 _LOADED: dict = {}
 
 
 def _trials(root, names) -> dict:
-    """name -> Trial, from this process's ``_LOADED`` when there, else loaded from ``root`` here (a
-    Dask worker)."""
+    """name -> Trial, from this process's ``_LOADED`` when there, else loaded from ``root`` here."""
     key = str(root)
     missing = [n for n in names if (key, n) not in _LOADED]
     if missing:
@@ -259,7 +260,7 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     names = index.select(trials)
     log.info(index.summary())
     folds = trial_folds(names, cfg.folds, cfg.fold_seed)
-    job = _FoldJob(cfg, _fold_train_config(cfg), data_location(index), tuple(names), out, jobs)
+    job = _FoldJob(cfg, _fold_train_config(cfg), data_location(index), tuple(names), out, jobs, configured_level())
     loaded = _trials(job.root, names)
     timing = {}
 
@@ -273,7 +274,8 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     timing["baseline_grids_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    done = _run_folds(job, folds, backend or LocalBackend(min(jobs, len(folds))))
+    # forkserver: a fold trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
+    done = _run_folds(job, folds, backend or LocalBackend(min(jobs, len(folds)), start_method="forkserver"))
     timing["folds_s"] = time.perf_counter() - t0
     rows, fold_info = [], []
     series = {n: {} for n in names}  # per-sample total error [deg] for the plots
@@ -323,6 +325,7 @@ def _run_folds(job: _FoldJob, folds, backend) -> dict:
 def _run_fold(job: _FoldJob, k: int, test: list) -> dict:
     """Fold ``k`` (a task): train on every other trial, learn the gains, score the learned rows and
     the ablations on ``test``. Returns its rows, error series, timelines and ``info``."""
+    follow_parent_logging(job.log_level)
     loaded = _trials(job.root, job.names)
     train = [n for n in job.names if n not in test]
     log.info(f"fold {k + 1}: train on {len(train)} trials, test on {', '.join(test)}")

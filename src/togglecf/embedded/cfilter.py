@@ -50,7 +50,7 @@ FILTER_SOURCES = ("tcf_filter.c", "tcf_features.c", "tcf_forest.c")
 C_FILTER = framework.CSourceSet(
     what="the exported toggling filter", exporter="export_c_filter", api_header="tcf_filter.h",
     state_type="tcf_filter_t", sources=FILTER_SOURCES,
-    headers=("tcf_filter.h", "tcf_features.h", "tcf_math.h", "tcf_forest.h", "tcf_config.h"), templates=TEMPLATES,
+    headers=("tcf_filter.h", *learned.FEATURE_HEADERS, "tcf_math.h", "tcf_forest.h", "tcf_config.h"), templates=TEMPLATES,
     generated=("tcf_config.h", "tcf_forest.h", "tcf_forest.c"), harness="tcf_harness",
     firmware=framework.FirmwareCalls(setup="tcf_filter_init(&tcf_f);", update="tcf_filter_update(&tcf_f, g, a, m);",
                            quat="tcf_filter_quat(&tcf_f, tcf_q);"))

@@ -19,18 +19,22 @@ from togglecf.embedded.forest_export import forest_to_c
 from togglecf.embedded.framework import c_float_array, c_string
 from togglecf.embedded.toolchain import c_float
 from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length, window_length
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.toggling.gains import GAINS_FILE, mode_name
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["FEATURE_TEMPLATES", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
+__all__ = ["FEATURE_TEMPLATES", "FEATURE_HEADERS", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
            "check_model_dir", "check_rate", "check_export_rate", "check_feature_layout", "fallback_config",
            "features_config", "write_forest", "learned_config"]
 
 #: Hz, the largest rate a rate-free export runs at by default (``TCF_MAX_FS``: the feature ring is sized for it)
 DEFAULT_MAX_FS = 400.0
 
-#: the models in the loop (streaming features, range check, tree walk), shipped with every learned filter
-FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c")
+#: the models in the loop (streaming features, range check, tree walk) and the prediction row they hold as
+#: both filters read it (``tcf_prediction.h``, the C twin of ``filters.prediction``), shipped with every learned filter
+FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c", "tcf_prediction.h")
+#: the headers of FEATURE_TEMPLATES (a firmware build's header list)
+FEATURE_HEADERS = ("tcf_features.h", "tcf_prediction.h")
 #: the channel layout tcf_filter.c was written for (it hard-codes the ring columns)
 _WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
                     "jerk", "mag_norm_dev", "dip_dev")
@@ -187,10 +191,11 @@ def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None) -> M
         raise ValueError(f"fs = {fs:g} Hz is above max_fs = {max_fs:g} Hz (the largest rate the export supports)")
     classes = list(filt.models.class_names)
     k = len(classes)
-    out_names = classes + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
+    layout = PredictionLayout.of(k)  # the forest's outputs are a prediction row
+    out_names = layout.names(classes)
     forest = filt.forest  # the trees the Python filter walks (outputs it never uses dropped)
     kept = {int(g) for g in np.unique(forest.tree_group)}
-    dropped = [out_names[i] for i in range(k, k + 6) if i not in kept]
+    dropped = [out_names[i] for i in layout.outputs(layout.eta) if i not in kept]
     fset = filt.models.feature_settings
     L, hop = window_length(fs, fset.window_s), hop_length(fs, fset.hop_s)
     if (L, hop) != (filt.streaming_features.L, filt.hop):

@@ -4,6 +4,9 @@
  *   toggling/inloop.py     inloop_batch (one sample)         -> tcf_filter_update_dt (the models:
  *                                                               tcf_features_push, tcf_features.c)
  *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
+ *   filters/prediction.py  switch_status (the toggling CF's own fallback rule) -> tcf_switch_status; the
+ *                          shared steps (class_evidence, remove_noise, predicted_disturbance, back_off):
+ *                          tcf_prediction.h
  *   filters/base.py        gyro_increment, acc_mag_quaternion (vector_ok: tcf_math.h)
  *   quaternion.py          from_matrix/from_acc_mag (_scalar); multiply/normalize/rotate/from_rotvec
  *                          (_scalar) are in tcf_math.h
@@ -12,6 +15,7 @@
 #include <math.h>
 #include <stddef.h>
 #include "tcf_filter.h"
+#include "tcf_prediction.h"  /* the prediction row as named fields, steps 1, 3, 4 */
 #include "tcf_math.h"  /* tcf_q_mul, tcf_q_normalize, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
 
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
@@ -103,53 +107,50 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
 
 /* ------------------------------------------------------------------ filters/toggling.py */
 
-/* Step 4 (_gains): the probability-weighted gains, returning 1; or the cautious gains, returning 0,
-   where the filter falls back (no valid prediction, or top probability below the confidence floor). */
-static int tcf_gains(const float *pred, float *aa, float *am) {
-  float total = 0.0f, top = 0.0f;
+/* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
+   VQF's blend in tcf_vqf_toggling.c; prediction.py's docstring says why): TCF_LEARNED when the
+   probabilities are valid and max p >= c0 sum p, else TCF_NO_PREDICTION / TCF_LOW_CONFIDENCE. */
+static int tcf_switch_status(int valid, float top, float total) {
+  if (!valid) return TCF_NO_PREDICTION;
+  if (top < TCF_CONFIDENCE_FLOOR * total) return TCF_LOW_CONFIDENCE;
+  return TCF_LEARNED;
+}
+
+/* Step 4 on a used prediction (_gains): the probability-weighted gains, total = sum p_s. */
+static void tcf_gains(const tcf_prediction_t *p, float total, float *aa, float *am) {
   int s;
   *aa = 0.0f;
   *am = 0.0f;
   for (s = 0; s < TCF_N_CLASSES; ++s) {
-    float p = pred[s];
-    if (!(p >= 0.0f && p < INFINITY)) break;
-    *aa += p * tcf_alpha_acc[s];
-    *am += p * tcf_alpha_mag[s];
-    total += p;
-    if (p > top) top = p;
-  }
-  if (s < TCF_N_CLASSES || !(total > 0.0f) || top < TCF_CONFIDENCE_FLOOR * total) {
-    *aa = TCF_ALPHA_FALLBACK_ACC;
-    *am = TCF_ALPHA_FALLBACK_MAG;
-    return 0;
+    *aa += p->probabilities[s] * tcf_alpha_acc[s];
+    *am += p->probabilities[s] * tcf_alpha_mag[s];
   }
   *aa /= total;
   *am /= total;
-  return 1;
 }
 
-/* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->pred. */
+/* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->feat.pred. */
 static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3],
                             float dt) {
-  const float *pred = f->feat.pred;
-  const float *eta_a = pred + TCF_N_CLASSES, *eta_m = pred + TCF_N_CLASSES + 3;
-  float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3];
-  int j, learned, eta_ok, acc_ok, mag_ok, g_ok;
-  learned = tcf_gains(pred, &alpha_a, &alpha_m);  /* step 4 first: the fallback also stops steps 1 and 3 */
-  eta_ok = learned;
-  for (j = 0; j < 6; ++j)
-    if (!isfinite(pred[TCF_N_CLASSES + j])) eta_ok = 0;
-  for (j = 0; j < 3; ++j) {  /* step 3: noise removal */
-    a_d[j] = eta_ok ? acc[j] - TCF_NOISE_WEIGHT_ACC * eta_a[j] : acc[j];
-    m_d[j] = eta_ok ? mag[j] - TCF_NOISE_WEIGHT_MAG * eta_m[j] : mag[j];
+  tcf_prediction_t pred;
+  float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3], top, total;
+  int j, valid, learned, eta_ok, acc_ok, mag_ok, g_ok;
+  tcf_prediction_from_row(f->feat.pred, &pred);
+  /* step 4 first: the fallback (the cautious gains) also stops steps 1 and 3 */
+  valid = tcf_class_evidence(&pred, &top, &total);  /* step 1 */
+  learned = tcf_switch_status(valid, top, total) == TCF_LEARNED;
+  if (learned) {
+    tcf_gains(&pred, total, &alpha_a, &alpha_m);
+  } else {
+    alpha_a = TCF_ALPHA_FALLBACK_ACC;
+    alpha_m = TCF_ALPHA_FALLBACK_MAG;
   }
+  eta_ok = tcf_remove_noise(&pred, acc, mag, TCF_NOISE_WEIGHT_ACC, TCF_NOISE_WEIGHT_MAG, learned, a_d, m_d);  /* step 3 */
   acc_ok = tcf_vec_ok(a_d);
   mag_ok = TCF_USE_MAG && tcf_vec_ok(m_d);
-  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* trust the magnetometer less when a disturbance is predicted */
-    float e2 = eta_m[0] * eta_m[0] + eta_m[1] * eta_m[1] + eta_m[2] * eta_m[2];
-    alpha_m = alpha_m / (1.0f + e2 / (TCF_MAG_DISTURBANCE_SCALE * TCF_MAG_DISTURBANCE_SCALE));
-  }
-  p_static = learned ? pred[TCF_STATIC_INDEX] : 0.0f;
+  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok)  /* step 4: trust the magnetometer less when a disturbance is predicted */
+    alpha_m = tcf_back_off(alpha_m, tcf_predicted_disturbance(&pred, TCF_MAG_DISTURBANCE_SCALE));
+  p_static = learned ? pred.probabilities[TCF_STATIC_INDEX] : 0.0f;
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = p_static;

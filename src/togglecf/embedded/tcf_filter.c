@@ -4,6 +4,8 @@
  *   toggling/inloop.py     inloop_batch (one sample)         -> tcf_filter_update_dt (the models:
  *                                                               tcf_features_push, tcf_features.c)
  *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
+ *                          TogglingFilter._coefficients, reset -> tcf_coefficients, tcf_filter_init
+ *   filters/timeconst.py   gain                              -> tcf_gain
  *   filters/prediction.py  switch_status (the toggling CF's own fallback rule) -> tcf_switch_status; the
  *                          shared steps (class_evidence, remove_noise, predicted_disturbance, back_off):
  *                          tcf_prediction.h
@@ -21,8 +23,17 @@
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
 
-static const float tcf_alpha_acc[TCF_N_CLASSES] = TCF_ALPHA_ACC_INIT;
-static const float tcf_alpha_mag[TCF_N_CLASSES] = TCF_ALPHA_MAG_INIT;
+#if defined(__FAST_MATH__)
+#error "tcf_filter.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
+#endif
+
+#if !defined(TCF_TAU_ACC_INIT) || !defined(TCF_OUTPUT_TAU) || !defined(TCF_BIAS_TAU)
+#error "tcf_config.h must define the time constants TCF_TAU_ACC_INIT, TCF_TAU_MAG_INIT, TCF_OUTPUT_TAU, TCF_BIAS_TAU (re-export it)"
+#endif
+
+/* the learned time constants [s], per state in class order (tcf_config.h; physical: rate-free) */
+static const float tcf_tau_acc[TCF_N_CLASSES] = TCF_TAU_ACC_INIT;
+static const float tcf_tau_mag[TCF_N_CLASSES] = TCF_TAU_MAG_INIT;
 
 /* ------------------------------------------------------------------ quaternion.py (_scalar) */
 
@@ -107,6 +118,32 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
 
 /* ------------------------------------------------------------------ filters/toggling.py */
 
+/* The per-sample gain of time constant tau [s] at sampling time ts [s] (timeconst.gain): 1 - exp(-ts/tau),
+   1 for tau = 0, 0 for tau < 0 (off); -expm1f: exact for ts << tau */
+static float tcf_gain(float tau, float ts) {
+  if (tau < 0.0f) return 0.0f;
+  return tau == 0.0f ? 1.0f : -expm1f(-ts / tau);
+}
+
+/* TogglingFilter._coefficients at sampling time ts [s]: the per-state gains, the fallback's cautious
+   ones (per sensor the smallest), the output blend and the bias gain */
+static void tcf_coefficients(float ts, tcf_filter_coeffs_t *c) {
+  int s;
+  c->ts = ts;
+  for (s = 0; s < TCF_N_CLASSES; ++s) {
+    c->alpha_acc[s] = tcf_gain(tcf_tau_acc[s], ts);
+    c->alpha_mag[s] = tcf_gain(tcf_tau_mag[s], ts);
+  }
+  c->alpha_fallback_acc = c->alpha_acc[0];
+  c->alpha_fallback_mag = c->alpha_mag[0];
+  for (s = 1; s < TCF_N_CLASSES; ++s) {
+    if (c->alpha_acc[s] < c->alpha_fallback_acc) c->alpha_fallback_acc = c->alpha_acc[s];
+    if (c->alpha_mag[s] < c->alpha_fallback_mag) c->alpha_fallback_mag = c->alpha_mag[s];
+  }
+  c->gamma = tcf_gain(TCF_OUTPUT_TAU, ts);
+  c->bias_gain = tcf_gain(TCF_BIAS_TAU, ts);
+}
+
 /* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
    VQF's blend in tcf_vqf_toggling.c; prediction.py's docstring says why): TCF_LEARNED when the
    probabilities are valid and max p >= c0 sum p, else TCF_NO_PREDICTION / TCF_LOW_CONFIDENCE. */
@@ -117,13 +154,13 @@ static int tcf_switch_status(int valid, float top, float total) {
 }
 
 /* Step 4 on a used prediction (_gains): the probability-weighted gains, total = sum p_s. */
-static void tcf_gains(const tcf_prediction_t *p, float total, float *aa, float *am) {
+static void tcf_gains(const tcf_filter_coeffs_t *c, const tcf_prediction_t *p, float total, float *aa, float *am) {
   int s;
   *aa = 0.0f;
   *am = 0.0f;
   for (s = 0; s < TCF_N_CLASSES; ++s) {
-    *aa += p->probabilities[s] * tcf_alpha_acc[s];
-    *am += p->probabilities[s] * tcf_alpha_mag[s];
+    *aa += p->probabilities[s] * c->alpha_acc[s];
+    *am += p->probabilities[s] * c->alpha_mag[s];
   }
   *aa /= total;
   *am /= total;
@@ -140,10 +177,10 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   valid = tcf_class_evidence(&pred, &top, &total);  /* step 1 */
   learned = tcf_switch_status(valid, top, total) == TCF_LEARNED;
   if (learned) {
-    tcf_gains(&pred, total, &alpha_a, &alpha_m);
+    tcf_gains(&f->c, &pred, total, &alpha_a, &alpha_m);
   } else {
-    alpha_a = TCF_ALPHA_FALLBACK_ACC;
-    alpha_m = TCF_ALPHA_FALLBACK_MAG;
+    alpha_a = f->c.alpha_fallback_acc;
+    alpha_m = f->c.alpha_fallback_mag;
   }
   eta_ok = tcf_remove_noise(&pred, acc, mag, TCF_NOISE_WEIGHT_ACC, TCF_NOISE_WEIGHT_MAG, learned, a_d, m_d);  /* step 3 */
   acc_ok = tcf_vec_ok(a_d);
@@ -171,10 +208,10 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     return;
   }
   g_ok = tcf_gyro_ok(gyr);
-  if (g_ok && TCF_BIAS_GAIN > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
+  if (g_ok && f->c.bias_gain > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
     float rx = gyr[0] - f->bias[0], ry = gyr[1] - f->bias[1], rz = gyr[2] - f->bias[2];
     if (rx * rx + ry * ry + rz * rz < TCF_BIAS_GATE * TCF_BIAS_GATE) {
-      float k = TCF_BIAS_GAIN * p_static;
+      float k = f->c.bias_gain * p_static;
       f->bias[0] += k * rx; f->bias[1] += k * ry; f->bias[2] += k * rz;
     }
   }
@@ -194,27 +231,30 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     f->alpha_mag = alpha_m;
   }
   if (acc_mag_quaternion(f->q, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
-    const float c = 1.0f - TCF_GAMMA;  /* step 7: output blend (LERP on the short arc) */
-    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + TCF_GAMMA * q_am[j];
+    const float gamma = f->c.gamma, c = 1.0f - gamma;  /* step 7: output blend (LERP on the short arc) */
+    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + gamma * q_am[j];
     tcf_q_normalize(f->q);
   }
 }
 
 /* ------------------------------------------------------------------ API */
 
-void tcf_filter_init(tcf_filter_t *f) {
-  int j;
+int tcf_filter_init(tcf_filter_t *f, float fs) {
+  tcf_features_rate_t r;
+  int j, rc = tcf_features_rate(fs, &r);
+  if (rc != TCF_OK) return rc;  /* fs not a rate, or above TCF_MAX_FS */
+  if (!(1.0f / fs <= TCF_MAX_DT)) return TCF_ERR_SETTINGS;  /* the gyro would never be integrated */
+  tcf_coefficients(1.0f / fs, &f->c);
   f->q[0] = 1.0f; f->q[1] = 0.0f; f->q[2] = 0.0f; f->q[3] = 0.0f;
   for (j = 0; j < 3; ++j) {
     f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
   f->initialised = 0u;
-  /* empty window, no prediction before the first full window; the features at TCF_FS (the export's
-     TCF_MAX_FS is TCF_FS, so this cannot fail) */
-  (void)tcf_features_init(&f->feat, TCF_FS);
+  (void)tcf_features_init(&f->feat, fs);  /* TCF_OK: the checks of tcf_features_rate above */
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = 0.0f;
+  return TCF_OK;
 }
 
 /* inloop_batch, one sample: push the features; at a window end (every hop samples once the window is
@@ -236,7 +276,7 @@ void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc
 }
 
 void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
-  tcf_filter_update_dt(f, gyr, acc, mag, TCF_DT);
+  tcf_filter_update_dt(f, gyr, acc, mag, f->c.ts);
 }
 
 void tcf_filter_quat(const tcf_filter_t *f, float q[4]) {

@@ -405,8 +405,12 @@ def sweep_tables(sweep: Path, out: Path, command: str) -> None:
 def embedded_sizes(report_path: Path, out: Path, command: str) -> None:
     rep = json.loads(report_path.read_text())
     src = f"the C filter export `{_shown(report_path)}` ({_mtime(report_path)})"
-    rows = [["sampling rate [Hz]", fmt(rep.get("fs"), 3)], ["mode", "9D" if rep.get("use_mag", True) else "6D"],
-            ["window / hop [samples]", f"{rep.get('window')} / {rep.get('hop')}"],
+    # the C takes its rate at init: window and hop are at the harness's default rate, the state holds the
+    # feature ring for the largest rate (max_fs)
+    rows = [["default rate of the harness [Hz] (the C takes its rate at init)", fmt(rep.get("fs"), 3)],
+            ["largest rate `TCF_MAX_FS` [Hz] (the feature ring is sized for it)", fmt(rep.get("max_fs"), 0)],
+            ["mode", "9D" if rep.get("use_mag", True) else "6D"],
+            ["window / hop at the default rate [samples]", f"{rep.get('window')} / {rep.get('hop')}"],
             ["trees walked / nodes", f"{rep.get('n_trees')} / {rep.get('n_nodes')}"],
             ["outputs left out (noise weight 0)", ", ".join(rep.get("dropped_outputs") or []) or "none"],
             ["filter state `sizeof(tcf_filter_t)` [bytes]", rep.get("state_bytes", "")]]

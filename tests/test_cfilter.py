@@ -27,6 +27,16 @@ low-confidence fallback included; last re-measured with feature version 3, model
   hundreds of m/s³, all others by <= 9e-6 abs; the *_dev features of the field reference by
   <= 7e-6, thanks to the compensated EMA of tcf_features.c; <= 1.7e-5 on the magnet trials 29 and 32).
 
+* Rate at init (issue 25): one export (default rate, the models' 285.714 Hz) run with
+  ``tcf_filter_init(&f, fs)`` at 100 Hz on the phone trial ``PHONE_TRIAL`` (tyrex_nexus5, real 100 Hz)
+  and at 200 Hz on BROAD trial 05 linearly resampled to 200 Hz, against the Python filter built at
+  that rate: the bounds above, unchanged (the arithmetic with C's own predictions <= 0.01°, the
+  in-loop filter <= 0.05° with >= 97 % of the samples holding the same prediction, a window's
+  range check falling back in one and not the other, as above, at <= 3 % of them), because the
+  rate enters C and Python only through the gains and the window/hop, computed from the same
+  seconds (C: float32 ``-expm1f(-Ts/tau)`` at init; Python: float64 ``1 - exp(-Ts/tau)``, a
+  relative difference of float32 rounding). Measured values: printed by the test (``-s``).
+
 Data: the models are the tiny test models trained on the shipped mini BROAD cuts of 02 and 07
 (``base_model_dir``), so every test here runs without ../shared. The port's equivalence is checked
 on the 4000-sample mini cut of trial 24 (rest, rotation, linear acceleration, taps; not trained
@@ -41,15 +51,21 @@ import numpy as np
 import pytest
 
 from conftest import train_tiny_models, with_fixed_gains
-from togglecf.embedded import cfilter, toolchain
 from togglecf.core.quaternion import angle_between
+from togglecf.data.broad import DatasetIndex
+from togglecf.embedded import cfilter, framework, toolchain
 from togglecf.embedded.toolchain import c_float
+from togglecf.features.windows import window_length
 from togglecf.filters.timeconst import gain
 
 if shutil.which("gcc") is None:
     pytest.skip("gcc not installed: the C filter cannot be compiled", allow_module_level=True)
 
 ANGLE_TOL_DEG = 0.05
+#: the filter arithmetic alone (C driven by given predictions vs TogglingFilter) [deg] (module docstring)
+ARITH_TOL_DEG = 0.01
+#: the 100 Hz phone trial of the rate test (tyrex_nexus5 beside BROAD; the learned VQF's rate test uses it too)
+PHONE_TRIAL = "Jakob_Nexus5_NoDist_AR"
 WARN_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Wdouble-promotion", "-Wshadow"]
 
 
@@ -159,7 +175,7 @@ def test_c_filter_arithmetic_matches_python_with_the_same_predictions(exported, 
             assert 0.0 < low.mean() < 1.0, f"6D: {low.mean():.3f} of the samples fall back"
         qc = cfilter.run_harness(exe, cf_trial.gyr, cf_trial.acc, mag, predictions=P)
         ang = _angles_deg(qc, ref)
-        assert ang.max() <= 0.01, f"{mode}: max {ang.max():.5f}°"
+        assert ang.max() <= ARITH_TOL_DEG, f"{mode}: max {ang.max():.5f}°"
 
 
 def test_c_features_match_compute_features(exported, model_dir, mini_trial):
@@ -324,9 +340,9 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
 
     full = CompiledModels.from_bundle(load_bundle(model_dir)).forest
     for mode, (rep, _) in exported.items():
-        L, S = rep["window"], rep["n_classes"]
-        assert rep["state_bytes"] > 0
-        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (60 + 12 * L + S)
+        L, S = rep["window_max"], rep["n_classes"]  # the ring is sized for TCF_MAX_FS
+        assert rep["state_bytes"] > 0 and L > rep["window"] and rep["max_fs"] == 400.0
+        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (65 + 12 * L + 3 * S)
         assert rep["n_trees"] < len(full.roots)  # unused outputs' trees are not exported
         names = {Path(f).name for f in rep["files"]}
         assert {"tcf_filter.h", "tcf_filter.c", "tcf_config.h", "tcf_forest.h", "tcf_forest.c", "tcf_harness.c",
@@ -335,13 +351,15 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
         assert f"#define TCF_WINDOW_MAX {L}" in config and f"#define TCF_USE_MAG {1 if mode == '9d' else 0}" in config
         assert rep["model_hash"] in config
         assert (Path(rep["out_dir"]) / "filter_report.json").is_file()
-        # gains.json holds time constants; the header gets the per-sample gains at the export rate
+        # gains.json holds time constants; so does the header (tcf_filter_init derives the per-sample gains
+        # at its rate); the report has the Python filter's per-sample gains at the harness's default rate
         settings = _gains(rep["class_names"], rep["settings"]["static_state"], mode == "9d")
         ts = 1.0 / rep["fs"]
         want_a = [gain(t, ts) for t in settings.tau_acc]
-        assert f"#define TCF_ALPHA_ACC_INIT {{{', '.join(c_float(v) for v in want_a)}}}" in config
-        assert f"#define TCF_BIAS_GAIN {c_float(gain(settings.bias_tau, ts))}" in config
-        assert f"#define TCF_GAMMA {c_float(gain(settings.output_tau, ts))}" in config
+        assert f"#define TCF_TAU_ACC_INIT {framework.c_float_array(settings.tau_acc)}" in config
+        assert f"#define TCF_BIAS_TAU {c_float(settings.bias_tau)}" in config
+        assert f"#define TCF_OUTPUT_TAU {c_float(settings.output_tau)}" in config
+        assert "TCF_ALPHA_ACC_INIT" not in config and "TCF_DT" not in config
         np.testing.assert_allclose(rep["per_sample_gains"]["alpha_acc"], want_a, rtol=1e-12)
         if mode == "9d":  # at BROAD's rate: the former per-sample gains the time constants were converted from
             np.testing.assert_allclose(want_a[:2], [0.002, 0.0005], rtol=1e-3)
@@ -377,13 +395,91 @@ def test_riscv_compile_and_link(exported, tmp_path):
     assert link["bss"] >= rep["state_bytes"]  # the filter state is a static in the probe program
 
 
+# ------------------------------------------------------------------------------------ rate at init
+
+def _resampled(t, fs_new):
+    """``t`` linearly interpolated onto a ``fs_new`` [Hz] grid (gyr, acc, mag; a test input only: C and
+    Python get the same arrays)."""
+    t_old = np.arange(t.n_samples) / t.fs
+    t_new = np.arange(0.0, t_old[-1], 1.0 / fs_new)
+    return tuple(np.column_stack([np.interp(t_new, t_old, x[:, j]) for j in range(3)]) for x in (t.gyr, t.acc, t.mag))
+
+
+@pytest.fixture(scope="module", params=[pytest.param("phone100", marks=pytest.mark.broad),
+                                        pytest.param("broad200", marks=pytest.mark.broad)])
+def other_rate(request, broad_index):
+    """A real trial at a rate other than the models' (285.714 Hz): a 100 Hz phone recording
+    (tyrex_nexus5, Nexus 5, no disturbance, AR) or BROAD trial 05 resampled to 200 Hz."""
+    if request.param == "phone100":
+        phone = broad_index.root.parent / "tyrex_nexus5"
+        if not (phone / "trials.json").is_file():
+            pytest.skip(f"no phone dataset at {phone}")
+        t = DatasetIndex.from_dir(phone).load(PHONE_TRIAL)
+        assert t.fs == pytest.approx(100.0)
+        return request.param, 100.0, t.gyr, t.acc, t.mag
+    return (request.param, 200.0, *_resampled(broad_index.load("05_undisturbed_slow_rotation_with_breaks_B"), 200.0))
+
+
+@pytest.mark.parametrize("mode", ["9d", "6d"])
+def test_c_at_another_rate_matches_python(exported, model_dir, other_rate, mode):
+    """One rate-free export (harness default: the models' 285.714 Hz) run at 100 and 200 Hz
+    (``tcf_filter_init(&f, fs)``) against the Python filter built at that rate. Bounds: those of the
+    models' own rate above, unchanged (module docstring: ``ARITH_TOL_DEG`` for the arithmetic with
+    C's own predictions, ``ANGLE_TOL_DEG`` and 97 % of the samples holding the same prediction in
+    the loop): the rate enters both only through the gains and the window/hop, from the same seconds."""
+    from togglecf.filters.toggling import TogglingFilter
+    from togglecf.toggling import load_toggling_filter
+
+    key, fs, gyr, acc, mag = other_rate
+    rep, exe = exported[mode]
+    assert rep["fs"] != fs and fs <= rep["max_fs"]
+    use_mag = mode == "9d"
+    mag = mag if use_mag else None
+    f = load_toggling_filter(model_dir, fs, use_mag=use_mag)
+    py = f.update_batch(gyr, acc, mag)
+    qc, dc = cfilter.run_harness(exe, gyr, acc, mag, diagnostics=True, fs=fs)
+    names = f.layout.names(rep["class_names"])
+    P = np.stack([py.diagnostics[k] for k in names], axis=1)
+    C = np.stack([dc[k] for k in names], axis=1)
+    ref_c = TogglingFilter(fs, f.settings, use_mag=use_mag).update_batch(gyr, acc, mag, predictions=C)
+    own, ang = _angles_deg(qc, ref_c.quat).max(), _angles_deg(qc, py.quat)
+    probs = f.layout.probabilities
+    close = np.all(np.abs(C - P)[:, probs] <= 1e-4 + 1e-4 * np.abs(P[:, probs]), axis=1)
+    ok = ~np.isnan(P[:, 0])
+    print(f"{key} {mode}: {len(gyr)} samples at {fs:g} Hz: C vs Python max {ang.max():.5f}°, with C's predictions "
+          f"{own:.5f}°, same prediction at {close[ok].mean():.2%}, fallback {py.diagnostics['fallback'].mean():.1%} "
+          f"(C {dc['fallback'].mean():.1%})")
+    assert own <= ARITH_TOL_DEG, f"{key} {mode}: C vs Python with C's predictions max {own:.5f}°"
+    # window from seconds at this rate: the first window ends at the same sample in C and Python
+    first = window_length(fs, f.models.feature_settings.window_s) - 1
+    for held, fell_back in ((P, py.diagnostics["fallback"]), (C, dc["fallback"])):
+        assert np.all(np.isnan(held[:first, 0])) and (not np.isnan(held[first, 0]) or fell_back[first] == 1.0)
+    # after it, a window whose feature lies within float32 rounding of a training-range bound may fall back in one
+    # and not the other (module docstring): such a flip counts against the 97 % that hold the same prediction
+    flips = np.mean(np.isnan(P[first:, 0]) != np.isnan(C[first:, 0]))
+    assert ang.max() <= ANGLE_TOL_DEG, f"{key} {mode}: max {ang.max():.5f}°"
+    assert close[ok].mean() >= 0.97 and flips <= 0.03, f"{key} {mode}: {close[ok].mean():.2%} the same, {flips:.2%} flips"
+
+
+def test_rate_at_init_limits(exported, mini_trial):
+    """``tcf_filter_init`` refuses a rate above ``TCF_MAX_FS`` (the harness exits with its code);
+    at the default rate ``tcf_filter_update`` (dt = 1/fs) equals ``tcf_filter_update_dt`` with that dt."""
+    rep, exe = exported["9d"]
+    t = mini_trial
+    with pytest.raises(RuntimeError, match="TCF_MAX_FS"):
+        cfilter.run_harness(exe, t.gyr[:10], t.acc[:10], t.mag[:10], fs=rep["max_fs"] * 1.01)
+    q = cfilter.run_harness(exe, t.gyr, t.acc, t.mag)
+    qd = cfilter.run_harness(exe, t.gyr, t.acc, t.mag, dt=float(np.float32(1.0 / np.float32(rep["fs"]))))
+    assert np.array_equal(q, qd)
+
+
 # ------------------------------------------------------------------------------------- errors
 
 def test_export_errors_name_the_problem(base_model_dir, model_dir, mini_trial, tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="gains.json"):  # base_model_dir has no gains
         cfilter.export_c_filter(base_model_dir, tmp_path / "a", mini_trial.fs)
-    with pytest.raises(ValueError, match="sampling_rate"):
-        cfilter.export_c_filter(model_dir, tmp_path / "b", 100.0)
+    with pytest.raises(ValueError, match="max_fs"):  # the harness's default rate above the largest supported
+        cfilter.export_c_filter(model_dir, tmp_path / "b", 500.0, max_fs=400.0)
     with pytest.raises(FileNotFoundError, match="metadata.json"):
         cfilter.export_c_filter(tmp_path, tmp_path / "c", mini_trial.fs)
     with pytest.raises(FileNotFoundError, match="tcf_config.h"):

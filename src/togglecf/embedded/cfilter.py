@@ -1,21 +1,26 @@
 """The toggling filter as a self-contained C99 source set (issue 6, "C implementation").
 
-``export_c_filter(model_dir, out_dir, fs)`` writes into ``out_dir`` (e.g.
-``build/embedded/NAME/filter/``):
+``export_c_filter(model_dir, out_dir, fs=None, use_mag=True, max_fs=400)`` writes into ``out_dir``
+(e.g. ``build/embedded/NAME/filter/``) a rate-free filter, as the learned VQF's export
+(``cvqf_toggling``): ``tcf_filter_init(&f, fs)`` takes the rate (up to ``TCF_MAX_FS``) and derives
+every per-sample gain and the features' window and hop from it and the settings in seconds;
+``tcf_filter_update_dt`` takes the per-sample Δt of the gyro integration:
 
 * ``tcf_filter.h`` / ``tcf_filter.c``: hand-written port of ``toggling.inloop.inloop_batch`` (one sample)
   (streaming features, trees every hop, softmax, toggling step 1-7), float32, no heap, all
-  state in one fixed-size ``tcf_filter_t`` (templates shipped in ``togglecf/embedded/``);
-* ``tcf_config.h``: generated: rate, window, hop, EMA constants, the learned gains of
-  ``gains.json`` (9D or 6D; time constants there, converted here to per-sample gains for the
-  export rate ``fs``: k = 1 − exp(−1/(fs·τ)), the Python filter's coefficients at that rate),
-  class names and the hashes of the model files it came from;
+  state in one fixed-size ``tcf_filter_t`` (templates shipped in ``togglecf/embedded/``, with the
+  shared ``tcf_features.{h,c}`` and ``tcf_prediction.h``);
+* ``tcf_config.h``: generated: the feature settings in seconds, ``TCF_MAX_FS`` and the ring size
+  ``TCF_WINDOW_MAX``, the harness's default rate ``TCF_DEFAULT_FS``, the learned time constants of
+  ``gains.json`` (9D or 6D) in seconds (``tcf_filter_init`` turns them into per-sample gains
+  k = 1 − exp(−Ts/τ) at its rate, the Python filter's coefficients at that rate), class names and
+  the hashes of the model files it came from;
 * ``tcf_forest.h`` / ``tcf_forest.c``: the merged forest (``export.forest_to_c``, outputs
   S class margins, η_a xyz, η_m xyz) without the trees the filter never uses (the outputs
   ``ModelTogglingFilter`` drops: η_a at noise weight 0; η_m in 6D, or at noise weight 0 without
   disturbance scaling). Leaf sums in float (``TCF_ACC_T``, set in ``tcf_config.h``);
-* ``tcf_harness.c`` + ``Makefile``: a host program ``tcf_harness in.csv out.csv`` (CSV of
-  gyr, acc[, mag] in rad/s, m/s², µT -> w,x,y,z), used by the tests to compare with Python;
+* ``tcf_harness.c`` + ``Makefile``: a host program ``tcf_harness [--fs HZ] in.csv out.csv`` (CSV of
+  gyr, acc[, mag][, dt] in rad/s, m/s², µT, s -> w,x,y,z), used by the tests to compare with Python;
 * ``filter_report.json``: the returned report (files, state size, sizes).
 
 ``build_harness(out_dir)`` compiles the harness with gcc; ``run_harness(exe, gyr, acc, mag)``
@@ -50,72 +55,76 @@ FILTER_SOURCES = ("tcf_filter.c", "tcf_features.c", "tcf_forest.c")
 C_FILTER = framework.CSourceSet(
     what="the exported toggling filter", exporter="export_c_filter", api_header="tcf_filter.h",
     state_type="tcf_filter_t", sources=FILTER_SOURCES,
-    headers=("tcf_filter.h", "tcf_features.h", "tcf_math.h", "tcf_forest.h", "tcf_config.h"), templates=TEMPLATES,
+    headers=("tcf_filter.h", *learned.FEATURE_HEADERS, "tcf_math.h", "tcf_forest.h", "tcf_config.h"), templates=TEMPLATES,
     generated=("tcf_config.h", "tcf_forest.h", "tcf_forest.c"), harness="tcf_harness",
-    firmware=framework.FirmwareCalls(setup="tcf_filter_init(&tcf_f);", update="tcf_filter_update(&tcf_f, g, a, m);",
-                           quat="tcf_filter_quat(&tcf_f, tcf_q);"))
+    firmware=framework.FirmwareCalls(setup="if (tcf_filter_init(&tcf_f, (float)TCF_DEFAULT_FS) != 0) return 1;",
+                                     update="tcf_filter_update(&tcf_f, g, a, m);",
+                                     quat="tcf_filter_quat(&tcf_f, tcf_q);"))
 
 
-def state_bytes_formula(window: int, n_classes: int) -> int:
+def state_bytes_formula(window_max: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (60 + 12 L + S)`` (60 = quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features'
-    per-sample constants 6, EMA references as hi + lo 10, candidate field as hi + lo 4 and its count
-    1, previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3; 12 L the ring; S the
-    class probabilities)."""
-    return 4 * (60 + 12 * int(window) + int(n_classes))
+    ``4 · (65 + 12 L_max + 3 S)`` (65 = the per-sample constants of the init rate Ts, fallback gains
+    2, γ, bias gain 5; quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features' per-sample
+    constants 6, EMA references as hi + lo 10, candidate field as hi + lo 4 and its count 1,
+    previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3; 12 L_max the ring,
+    ``TCF_WINDOW_MAX`` rows for ``TCF_MAX_FS``; 3 S the per-state gains α_acc, α_mag and the class
+    probabilities)."""
+    return 4 * (65 + 12 * int(window_max) + 3 * int(n_classes))
 
 
-def _filter_defines(settings, params, static_index: int, fs: float) -> str:
-    """The toggling CF's own lines of ``tcf_config.h``: its rate ``fs`` [Hz] (this export is
-    locked to it), step size limit, per-sample gains, bias learning, disturbance scaling, noise
-    weights and the fallback gains."""
-    s, p = settings, params
-    return f"""/* sampling: call tcf_filter_update once per sample at this rate (this build is for TCF_FS only; the
- * features are set to it by tcf_filter_init, TCF_MAX_FS = TCF_FS) */
-#define TCF_FS {c_float(fs)}            /* Hz */
-#define TCF_DT {c_float(1.0 / fs)}      /* s, 1 / TCF_FS */
+def _filter_defines(settings, static_index: int, fs: float) -> str:
+    """The toggling CF's own lines of ``tcf_config.h``: the harness's default rate ``fs`` [Hz],
+    the step size limit, the learned time constants in seconds (``tcf_filter_init`` turns them into
+    per-sample gains at its rate), bias learning, disturbance scaling, noise weights and the
+    confidence floor."""
+    s = settings
+    return f"""/* the rate is set at init, tcf_filter_init(&f, fs); the host harness's and the size probes' default */
+#define TCF_DEFAULT_FS {c_float(fs)}   /* Hz */
 #define TCF_MAX_DT {c_float(s.max_dt)}   /* s, longest step still integrated */
 
-/* learned gains (gains.json), per class in the order above: per-sample gains at
- * TCF_FS, k = 1 - exp(-TCF_DT / tau) of the learned time constants (this build is for TCF_FS only)
- * tau_acc [s] {', '.join(f'{t:g}' for t in s.tau_acc)}; tau_mag [s] {', '.join(f'{t:g}' for t in s.tau_mag)}
- * output_tau {s.output_tau:g} s, bias_tau {s.bias_tau:g} s */
-#define TCF_ALPHA_ACC_INIT {framework.c_float_array(p.alpha_acc)}
-#define TCF_ALPHA_MAG_INIT {framework.c_float_array(p.alpha_mag)}
-#define TCF_GAMMA {c_float(p.gamma)}
-#define TCF_BIAS_GAIN {c_float(p.bias_gain)}
+/* learned time constants (gains.json) [s], per class in the order above; tcf_filter_init derives the
+ * per-sample gains k = 1 - exp(-Ts / tau) at its rate (Ts = 1/fs; tau 0: k = 1, tau < 0: k = 0, off) */
+#define TCF_TAU_ACC_INIT {framework.c_float_array(s.tau_acc)}
+#define TCF_TAU_MAG_INIT {framework.c_float_array(s.tau_mag)}
+#define TCF_OUTPUT_TAU {c_float(s.output_tau)}   /* s, output blend gamma */
+#define TCF_BIAS_TAU {c_float(s.bias_tau)}   /* s, gyro bias learning at rest */
 #define TCF_BIAS_GATE {c_float(s.bias_gate)}       /* rad/s */
 #define TCF_STATIC_INDEX {static_index}     /* class in which the gyro bias is learned: {s.static_state} */
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(s.mag_disturbance_scale)}   /* uT, 0 = off */
 #define TCF_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}
 #define TCF_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}
 /* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the cautious
- * gains, per sensor the smallest of the per-class ones above */
+ * gains, per sensor the smallest of the per-class ones (tcf_filter_init) */
 #define TCF_CONFIDENCE_FLOOR {c_float(s.confidence_floor)}
-#define TCF_ALPHA_FALLBACK_ACC {c_float(p.alpha_fallback_acc)}
-#define TCF_ALPHA_FALLBACK_MAG {c_float(p.alpha_fallback_mag)}
 """
 
 
-def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: bool = True) -> dict:
+def export_c_filter(model_dir, out_dir, fs=None, use_mag: bool = True, riscv: bool = True, *,
+                    max_fs: float = learned.DEFAULT_MAX_FS) -> dict:
     """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
-    for sampling rate ``fs`` [Hz] into ``out_dir``; returns the report (also written as
-    ``out_dir/filter_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_filter_t), measured
-    with gcc), ``object_sizes`` and, with the RISC-V toolchain, ``linked_riscv`` (an rv32imc
-    picolibc program calling init/update: its ``flash`` = text + data bytes)."""
+    into ``out_dir``, rate-free: the C takes its rate at init (``tcf_filter_init(&f, fs)``, any rate
+    up to ``max_fs`` [Hz], ``TCF_MAX_FS``, for which the feature ring is sized). ``fs`` [Hz]: only
+    the default rate of the host harness and the size probes (``TCF_DEFAULT_FS``; None: the models'
+    ``sampling_rate``); the report's ``window``, ``hop`` and ``per_sample_gains`` are at it. Returns
+    the report (also written as ``out_dir/filter_report.json``): ``files``, ``state_bytes``
+    (sizeof(tcf_filter_t), measured with gcc), ``object_sizes`` and, with the RISC-V toolchain,
+    ``linked_riscv`` (an rv32imc picolibc program calling init/update: its ``flash`` = text + data
+    bytes)."""
     model_dir, out_dir = Path(model_dir), Path(out_dir)
-    ex = learned.load_model_export(model_dir, fs, use_mag, kind="toggling")
-    filt, s, L, k = ex.filt, ex.filt.settings, ex.window, len(ex.classes)
+    ex = learned.load_model_export(model_dir, fs, use_mag, kind="toggling", max_fs=max_fs)
+    filt, s, L, k = ex.filt, ex.filt.settings, ex.window_max, len(ex.classes)
     comment, common = learned.learned_config(ex, model_dir, use_mag,
                                              f"filter: the toggling CF (gains.json, {'9d' if use_mag else '6d'})")
     config = framework.config_header("tcf_config.h", "cfilter.export_c_filter", comment, common + "\n"
-                                     + _filter_defines(s, filt.params, s.states.index(s.static_state), ex.fs))
+                                     + _filter_defines(s, s.states.index(s.static_state), ex.fs))
     files = framework.write_source_set(out_dir, C_FILTER, {"tcf_config.h": config})
     forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex)
     files += forest_files
     p = filt.params
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(f) for f in files],
-              "fs": ex.fs, "use_mag": bool(use_mag), "window": L, "hop": ex.hop, "n_classes": k,
+              "fs": ex.fs, "rate": "at init (tcf_filter_init); fs: the harness's default", "max_fs": ex.max_fs,
+              "window_max": L, "use_mag": bool(use_mag), "window": ex.window, "hop": ex.hop, "n_classes": k,
               "class_names": ex.classes, "n_features": int(ex.forest.n_features), "n_trees": int(len(ex.forest.roots)),
               "n_nodes": n_nodes, "dropped_outputs": ex.dropped, "settings": asdict(s),
               "per_sample_gains": {"alpha_acc": p.alpha_acc.tolist(), "alpha_mag": p.alpha_mag.tolist(),
@@ -124,7 +133,7 @@ def export_c_filter(model_dir, out_dir, fs: float, use_mag: bool = True, riscv: 
                                    "alpha_fallback_mag": float(p.alpha_fallback_mag)},
               "schema_hash": ex.schema_hash, "model_hash": ex.model_hash, "gains_sha256": ex.gains_hash,
               "fallback": learned.fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (60 + 12 * window + n_classes)",
+              "state_bytes_formula": "4 * (65 + 12 * window_max + 3 * n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = framework.probe_sizes(out_dir, "tcf_filter.h", ["sizeof(tcf_filter_t)", "TCF_STATE_BYTES"])
     if documented != report["state_bytes_documented"]:
@@ -143,16 +152,19 @@ def build_harness(out_dir, exe=None, cflags=HARNESS_CFLAGS) -> Path:
     return framework.build_host_harness(out_dir, C_FILTER, exe, cflags)
 
 
-def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False, predictions=None):
+def run_harness(exe, gyr, acc, mag=None, *, diagnostics: bool = False, no_mag: bool = False, predictions=None,
+                fs=None, dt=None):
     """Run the compiled harness on ``(N, 3)`` arrays (``mag=None``: a 6-column CSV, the filter
     gets ``mag = NULL``; ``no_mag``: pass NULL although mag is given). Returns the quaternions
     ``(N, 4)`` float64, or with ``diagnostics`` ``(quat, dict)`` with the held predictions
     (``p_<class>``, ``eta_acc_x`` ...), ``alpha_acc``, ``alpha_mag`` per sample and the filter's
     ``ns_per_sample`` (the harness's clock() timing of the update calls).
     ``predictions (N, S + 6)``: drive the toggling step with these instead of the trees
-    (``tcf_filter_update_pred``; as ``TogglingFilter.update_batch(..., predictions=...)``)."""
+    (``tcf_filter_update_pred``; as ``TogglingFilter.update_batch(..., predictions=...)``).
+    ``fs`` [Hz]: the rate given to ``tcf_filter_init`` (default ``TCF_DEFAULT_FS``); ``dt`` [s] (scalar
+    or ``(N,)``): the per-sample time steps (``tcf_filter_update_dt``; as ``update_batch(..., dt=...)``)."""
     return run_prediction_harness(exe, gyr, acc, mag, diagnostics=diagnostics, no_mag=no_mag,
-                                  predictions=predictions)
+                                  predictions=predictions, fs=fs, dt=dt)
 
 
 def harness_features(exe, gyr, acc, mag=None):

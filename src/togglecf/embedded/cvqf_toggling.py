@@ -65,7 +65,7 @@ VQFT_SOURCES = ("tcf_vqf_toggling.c", "tcf_features.c", "tcf_vqf.c", "tcf_forest
 C_VQFT = framework.CSourceSet(
     what="the exported learned VQF filter", exporter="export_c_vqf_toggling", api_header="tcf_vqf_toggling.h",
     state_type="tcf_vqft_t", sources=VQFT_SOURCES,
-    headers=("tcf_vqf_toggling.h", "tcf_features.h", "tcf_vqf.h", "tcf_math.h", "tcf_forest.h", "tcf_config.h",
+    headers=("tcf_vqf_toggling.h", *learned.FEATURE_HEADERS, "tcf_vqf.h", "tcf_math.h", "tcf_forest.h", "tcf_config.h",
              "tcf_vqf_config.h"),
     templates=VQFT_TEMPLATES, generated=("tcf_config.h", "tcf_vqf_config.h", "tcf_forest.h", "tcf_forest.c"),
     harness="tcf_vqf_toggling_harness",

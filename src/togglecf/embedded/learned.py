@@ -19,24 +19,27 @@ from togglecf.embedded.forest_export import forest_to_c
 from togglecf.embedded.framework import c_float_array, c_string
 from togglecf.embedded.toolchain import c_float
 from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length, window_length
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.toggling.gains import GAINS_FILE, mode_name
 from togglecf.toggling.load import load_toggling_filter
 
-__all__ = ["FEATURE_TEMPLATES", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
-           "check_model_dir", "check_rate", "check_export_rate", "check_feature_layout", "fallback_config",
+__all__ = ["FEATURE_TEMPLATES", "FEATURE_HEADERS", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
+           "check_model_dir", "check_rate", "check_feature_layout", "fallback_config",
            "features_config", "write_forest", "learned_config"]
 
 #: Hz, the largest rate a rate-free export runs at by default (``TCF_MAX_FS``: the feature ring is sized for it)
 DEFAULT_MAX_FS = 400.0
 
-#: the models in the loop (streaming features, range check, tree walk), shipped with every learned filter
-FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c")
+#: the models in the loop (streaming features, range check, tree walk) and the prediction row they hold as
+#: both filters read it (``tcf_prediction.h``, the C twin of ``filters.prediction``), shipped with every learned filter
+FEATURE_TEMPLATES = ("tcf_features.h", "tcf_features.c", "tcf_prediction.h")
+#: the headers of FEATURE_TEMPLATES (a firmware build's header list)
+FEATURE_HEADERS = ("tcf_features.h", "tcf_prediction.h")
 #: the channel layout tcf_filter.c was written for (it hard-codes the ring columns)
 _WINDOW_CHANNELS = ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev",
                     "jerk", "mag_norm_dev", "dip_dev")
 _LAST_CHANNELS = ("gyr_norm", "acc_x", "acc_y", "acc_z", "acc_norm_dev", "mag_norm_dev", "dip_dev",
                   "acc_hp_x", "acc_hp_y", "acc_hp_z")
-_FS_RTOL = 1e-3
 
 
 def fallback_config(models) -> tuple[str, dict]:
@@ -139,21 +142,6 @@ def check_rate(fs, what: str = "fs") -> float:
     return float(fs)
 
 
-def check_export_rate(model_dir, fs) -> tuple[dict, float]:
-    """The checks of an export locked to one rate (the toggling CF): ``model_dir`` is a model
-    directory with ``gains.json`` (``check_model_dir``), ``fs`` a positive rate equal to the
-    models' ``sampling_rate``. Returns (metadata, fs as float)."""
-    meta = check_model_dir(model_dir)
-    meta_path = Path(model_dir) / "metadata.json"
-    fs = check_rate(fs)
-    sr = meta.get("sampling_rate")
-    if sr is not None and abs(fs / float(sr) - 1.0) > _FS_RTOL:
-        raise ValueError(f"fs = {fs:g} Hz differs from the models' sampling_rate {float(sr):g} Hz in {meta_path}: "
-                         "the models' features were learned at that rate; export for "
-                         f"fs={float(sr):g} (and resample the IMU to it) or retrain at {fs:g} Hz")
-    return meta, fs
-
-
 @dataclass
 class ModelExport:
     """What both C exports of a trained filter take from its model directory: the Python filter
@@ -187,10 +175,11 @@ def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None) -> M
         raise ValueError(f"fs = {fs:g} Hz is above max_fs = {max_fs:g} Hz (the largest rate the export supports)")
     classes = list(filt.models.class_names)
     k = len(classes)
-    out_names = classes + [f"eta_{t}_{ax}" for t in ("acc", "mag") for ax in "xyz"]
+    layout = PredictionLayout.of(k)  # the forest's outputs are a prediction row
+    out_names = layout.names(classes)
     forest = filt.forest  # the trees the Python filter walks (outputs it never uses dropped)
     kept = {int(g) for g in np.unique(forest.tree_group)}
-    dropped = [out_names[i] for i in range(k, k + 6) if i not in kept]
+    dropped = [out_names[i] for i in layout.outputs(layout.eta) if i not in kept]
     fset = filt.models.feature_settings
     L, hop = window_length(fs, fset.window_s), hop_length(fs, fset.hop_s)
     if (L, hop) != (filt.streaming_features.L, filt.hop):
@@ -215,19 +204,15 @@ def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport) -> tuple[list,
     return files, int(header.split("#define TCF_N_NODES ")[1].split()[0])
 
 
-def load_model_export(model_dir, fs, use_mag: bool, kind: str, max_fs=None) -> ModelExport:
+def load_model_export(model_dir, fs, use_mag: bool, kind: str, max_fs: float = DEFAULT_MAX_FS) -> ModelExport:
     """The checks every learned-filter export makes (``check_feature_layout``; the model
     directory), then the filter ``kind`` of ``model_dir`` (``"toggling"``, ``"vqf_toggling"``)
-    loaded at ``fs`` [Hz] in 9D (``use_mag``) or 6D, as a ``ModelExport``. Locked to one rate
-    (``max_fs=None``: ``check_export_rate``, ``fs`` must be the models' ``sampling_rate``) or
-    rate-free (``max_fs`` [Hz] given: the C takes its rate at init; ``fs`` is then only the
-    harness's default rate, the models' ``sampling_rate`` when None)."""
+    loaded at ``fs`` [Hz] in 9D (``use_mag``) or 6D, as a ``ModelExport``. Rate-free: the C takes
+    its rate at init, up to ``max_fs`` [Hz]; ``fs`` is only the harness's default rate (the models'
+    ``sampling_rate`` when None)."""
     model_dir = Path(model_dir)
-    if max_fs is None:
-        meta, fs = check_export_rate(model_dir, fs)
-    else:
-        meta = check_model_dir(model_dir)
-        fs = check_rate(fs if fs is not None else meta.get("sampling_rate"))
+    meta = check_model_dir(model_dir)
+    fs = check_rate(fs if fs is not None else meta.get("sampling_rate"))
     check_feature_layout()
     try:
         filt = load_toggling_filter(model_dir, fs, use_mag=use_mag, kind=kind)

@@ -19,6 +19,7 @@ from togglecf.embedded.forest_export import (
     preorder,
 )
 from togglecf.embedded.toolchain import gcc_shared, measure_sizes, native_stderr_silenced, stack_usage
+from togglecf.filters.prediction import PredictionLayout
 
 __all__ = ["used_boosters", "array_measurements", "tl2cgen_sizes", "used_features"]
 
@@ -26,7 +27,8 @@ __all__ = ["used_boosters", "array_measurements", "tl2cgen_sizes", "used_feature
 def used_boosters(forest, n_classes: int) -> list:
     """Booster names whose trees the filter's ``forest`` holds (unused outputs are dropped)."""
     groups = set(np.unique(forest.tree_group).tolist())
-    return ["classifier"] + [n for j, n in enumerate(BOOSTER_NAMES[1:]) if n_classes + j in groups]
+    layout = PredictionLayout.of(n_classes)  # the forest's outputs are a prediction row: η̂_a xyz, η̂_m xyz after the classes
+    return ["classifier"] + [n for i, n in zip(layout.outputs(layout.eta), BOOSTER_NAMES[1:]) if i in groups]
 
 
 def array_measurements(forest, n_classes: int, X_test, riscv: bool) -> dict:

@@ -42,6 +42,7 @@
 #include <stdint.h>
 #include "tcf_config.h"
 #include "tcf_forest.h"
+#include "tcf_prediction.h" /* TCF_N_PRED: the row the trees write, as the filters read it */
 
 #ifdef __cplusplus
 extern "C" {
@@ -51,8 +52,6 @@ extern "C" {
 #define TCF_RING_COLS 12
 /* channels whose current value is a feature (togglecf.features.LAST_CHANNELS) */
 #define TCF_N_LAST 10
-/* class probabilities, then eta_a xyz [m/s^2], then eta_m xyz [uT] */
-#define TCF_N_PRED (TCF_N_CLASSES + 6)
 
 /* out-of-range fallback (togglecf.learn.ranges), set by the export in tcf_config.h: the number
    of features with finite training bounds (0: the rule is compiled out) and the most of them
@@ -99,7 +98,8 @@ typedef struct tcf_features {
   uint32_t n_filled;   /* samples in the ring (saturates at rate.window) */
   uint32_t pos;        /* ring row of the next sample */
   uint32_t hop_phase;  /* samples since the last window end, modulo rate.hop */
-  /* held prediction (NaN before the first full window, and after a window out of range) */
+  /* held prediction row (tcf_prediction.h; NaN before the first full window, and after a window out
+     of range) */
   float pred[TCF_N_PRED];
 } tcf_features_t;
 

@@ -4,6 +4,11 @@
  *   toggling/inloop.py     inloop_batch (one sample)         -> tcf_filter_update_dt (the models:
  *                                                               tcf_features_push, tcf_features.c)
  *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
+ *                          TogglingFilter._coefficients, reset -> tcf_coefficients, tcf_filter_init
+ *   filters/timeconst.py   gain                              -> tcf_gain
+ *   filters/prediction.py  switch_status (the toggling CF's own fallback rule) -> tcf_switch_status; the
+ *                          shared steps (class_evidence, remove_noise, predicted_disturbance, back_off):
+ *                          tcf_prediction.h
  *   filters/base.py        gyro_increment, acc_mag_quaternion (vector_ok: tcf_math.h)
  *   quaternion.py          from_matrix/from_acc_mag (_scalar); multiply/normalize/rotate/from_rotvec
  *                          (_scalar) are in tcf_math.h
@@ -12,13 +17,23 @@
 #include <math.h>
 #include <stddef.h>
 #include "tcf_filter.h"
+#include "tcf_prediction.h"  /* the prediction row as named fields, steps 1, 3, 4 */
 #include "tcf_math.h"  /* tcf_q_mul, tcf_q_normalize, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
 
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
 
-static const float tcf_alpha_acc[TCF_N_CLASSES] = TCF_ALPHA_ACC_INIT;
-static const float tcf_alpha_mag[TCF_N_CLASSES] = TCF_ALPHA_MAG_INIT;
+#if defined(__FAST_MATH__)
+#error "tcf_filter.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
+#endif
+
+#if !defined(TCF_TAU_ACC_INIT) || !defined(TCF_OUTPUT_TAU) || !defined(TCF_BIAS_TAU)
+#error "tcf_config.h must define the time constants TCF_TAU_ACC_INIT, TCF_TAU_MAG_INIT, TCF_OUTPUT_TAU, TCF_BIAS_TAU (re-export it)"
+#endif
+
+/* the learned time constants [s], per state in class order (tcf_config.h; physical: rate-free) */
+static const float tcf_tau_acc[TCF_N_CLASSES] = TCF_TAU_ACC_INIT;
+static const float tcf_tau_mag[TCF_N_CLASSES] = TCF_TAU_MAG_INIT;
 
 /* ------------------------------------------------------------------ quaternion.py (_scalar) */
 
@@ -103,53 +118,76 @@ static int acc_mag_quaternion(const float q_ref[4], const float acc[3], const fl
 
 /* ------------------------------------------------------------------ filters/toggling.py */
 
-/* Step 4 (_gains): the probability-weighted gains, returning 1; or the cautious gains, returning 0,
-   where the filter falls back (no valid prediction, or top probability below the confidence floor). */
-static int tcf_gains(const float *pred, float *aa, float *am) {
-  float total = 0.0f, top = 0.0f;
+/* The per-sample gain of time constant tau [s] at sampling time ts [s] (timeconst.gain): 1 - exp(-ts/tau),
+   1 for tau = 0, 0 for tau < 0 (off); -expm1f: exact for ts << tau */
+static float tcf_gain(float tau, float ts) {
+  if (tau < 0.0f) return 0.0f;
+  return tau == 0.0f ? 1.0f : -expm1f(-ts / tau);
+}
+
+/* TogglingFilter._coefficients at sampling time ts [s]: the per-state gains, the fallback's cautious
+   ones (per sensor the smallest), the output blend and the bias gain */
+static void tcf_coefficients(float ts, tcf_filter_coeffs_t *c) {
+  int s;
+  c->ts = ts;
+  for (s = 0; s < TCF_N_CLASSES; ++s) {
+    c->alpha_acc[s] = tcf_gain(tcf_tau_acc[s], ts);
+    c->alpha_mag[s] = tcf_gain(tcf_tau_mag[s], ts);
+  }
+  c->alpha_fallback_acc = c->alpha_acc[0];
+  c->alpha_fallback_mag = c->alpha_mag[0];
+  for (s = 1; s < TCF_N_CLASSES; ++s) {
+    if (c->alpha_acc[s] < c->alpha_fallback_acc) c->alpha_fallback_acc = c->alpha_acc[s];
+    if (c->alpha_mag[s] < c->alpha_fallback_mag) c->alpha_fallback_mag = c->alpha_mag[s];
+  }
+  c->gamma = tcf_gain(TCF_OUTPUT_TAU, ts);
+  c->bias_gain = tcf_gain(TCF_BIAS_TAU, ts);
+}
+
+/* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
+   VQF's blend in tcf_vqf_toggling.c; prediction.py's docstring says why): TCF_LEARNED when the
+   probabilities are valid and max p >= c0 sum p, else TCF_NO_PREDICTION / TCF_LOW_CONFIDENCE. */
+static int tcf_switch_status(int valid, float top, float total) {
+  if (!valid) return TCF_NO_PREDICTION;
+  if (top < TCF_CONFIDENCE_FLOOR * total) return TCF_LOW_CONFIDENCE;
+  return TCF_LEARNED;
+}
+
+/* Step 4 on a used prediction (_gains): the probability-weighted gains, total = sum p_s. */
+static void tcf_gains(const tcf_filter_coeffs_t *c, const tcf_prediction_t *p, float total, float *aa, float *am) {
   int s;
   *aa = 0.0f;
   *am = 0.0f;
   for (s = 0; s < TCF_N_CLASSES; ++s) {
-    float p = pred[s];
-    if (!(p >= 0.0f && p < INFINITY)) break;
-    *aa += p * tcf_alpha_acc[s];
-    *am += p * tcf_alpha_mag[s];
-    total += p;
-    if (p > top) top = p;
-  }
-  if (s < TCF_N_CLASSES || !(total > 0.0f) || top < TCF_CONFIDENCE_FLOOR * total) {
-    *aa = TCF_ALPHA_FALLBACK_ACC;
-    *am = TCF_ALPHA_FALLBACK_MAG;
-    return 0;
+    *aa += p->probabilities[s] * c->alpha_acc[s];
+    *am += p->probabilities[s] * c->alpha_mag[s];
   }
   *aa /= total;
   *am /= total;
-  return 1;
 }
 
-/* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->pred. */
+/* One sample of the toggling CF (toggle_step, steps 1-7) with the held prediction f->feat.pred. */
 static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3],
                             float dt) {
-  const float *pred = f->feat.pred;
-  const float *eta_a = pred + TCF_N_CLASSES, *eta_m = pred + TCF_N_CLASSES + 3;
-  float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3];
-  int j, learned, eta_ok, acc_ok, mag_ok, g_ok;
-  learned = tcf_gains(pred, &alpha_a, &alpha_m);  /* step 4 first: the fallback also stops steps 1 and 3 */
-  eta_ok = learned;
-  for (j = 0; j < 6; ++j)
-    if (!isfinite(pred[TCF_N_CLASSES + j])) eta_ok = 0;
-  for (j = 0; j < 3; ++j) {  /* step 3: noise removal */
-    a_d[j] = eta_ok ? acc[j] - TCF_NOISE_WEIGHT_ACC * eta_a[j] : acc[j];
-    m_d[j] = eta_ok ? mag[j] - TCF_NOISE_WEIGHT_MAG * eta_m[j] : mag[j];
+  tcf_prediction_t pred;
+  float a_d[3], m_d[3], alpha_a, alpha_m, p_static, q_am[4], dq[4], w[3], top, total;
+  int j, valid, learned, eta_ok, acc_ok, mag_ok, g_ok;
+  tcf_prediction_from_row(f->feat.pred, &pred);
+  /* step 4 first: the fallback (the cautious gains) also stops steps 1 and 3 */
+  valid = tcf_class_evidence(&pred, &top, &total);  /* step 1 */
+  learned = tcf_switch_status(valid, top, total) == TCF_LEARNED;
+  if (learned) {
+    tcf_gains(&f->c, &pred, total, &alpha_a, &alpha_m);
+  } else {
+    alpha_a = f->c.alpha_fallback_acc;
+    alpha_m = f->c.alpha_fallback_mag;
   }
+  eta_ok = tcf_remove_noise(&pred, acc, mag, TCF_NOISE_WEIGHT_ACC, TCF_NOISE_WEIGHT_MAG, learned, a_d, m_d);  /* step 3 */
   acc_ok = tcf_vec_ok(a_d);
   mag_ok = TCF_USE_MAG && tcf_vec_ok(m_d);
-  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* trust the magnetometer less when a disturbance is predicted */
-    float e2 = eta_m[0] * eta_m[0] + eta_m[1] * eta_m[1] + eta_m[2] * eta_m[2];
-    alpha_m = alpha_m / (1.0f + e2 / (TCF_MAG_DISTURBANCE_SCALE * TCF_MAG_DISTURBANCE_SCALE));
-  }
-  p_static = learned ? pred[TCF_STATIC_INDEX] : 0.0f;
+  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok)  /* step 4: trust the magnetometer less when a disturbance is predicted */
+    alpha_m = tcf_back_off(alpha_m, tcf_predicted_disturbance(&pred, TCF_MAG_DISTURBANCE_SCALE));
+  p_static = learned ? pred.probabilities[TCF_STATIC_INDEX] : 0.0f;
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = p_static;
@@ -170,10 +208,10 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     return;
   }
   g_ok = tcf_gyro_ok(gyr);
-  if (g_ok && TCF_BIAS_GAIN > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
+  if (g_ok && f->c.bias_gain > 0.0f && p_static > 0.0f) {  /* step 1: gyro bias at rest */
     float rx = gyr[0] - f->bias[0], ry = gyr[1] - f->bias[1], rz = gyr[2] - f->bias[2];
     if (rx * rx + ry * ry + rz * rz < TCF_BIAS_GATE * TCF_BIAS_GATE) {
-      float k = TCF_BIAS_GAIN * p_static;
+      float k = f->c.bias_gain * p_static;
       f->bias[0] += k * rx; f->bias[1] += k * ry; f->bias[2] += k * rz;
     }
   }
@@ -193,27 +231,30 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     f->alpha_mag = alpha_m;
   }
   if (acc_mag_quaternion(f->q, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
-    const float c = 1.0f - TCF_GAMMA;  /* step 7: output blend (LERP on the short arc) */
-    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + TCF_GAMMA * q_am[j];
+    const float gamma = f->c.gamma, c = 1.0f - gamma;  /* step 7: output blend (LERP on the short arc) */
+    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + gamma * q_am[j];
     tcf_q_normalize(f->q);
   }
 }
 
 /* ------------------------------------------------------------------ API */
 
-void tcf_filter_init(tcf_filter_t *f) {
-  int j;
+int tcf_filter_init(tcf_filter_t *f, float fs) {
+  tcf_features_rate_t r;
+  int j, rc = tcf_features_rate(fs, &r);
+  if (rc != TCF_OK) return rc;  /* fs not a rate, or above TCF_MAX_FS */
+  if (!(1.0f / fs <= TCF_MAX_DT)) return TCF_ERR_SETTINGS;  /* the gyro would never be integrated */
+  tcf_coefficients(1.0f / fs, &f->c);
   f->q[0] = 1.0f; f->q[1] = 0.0f; f->q[2] = 0.0f; f->q[3] = 0.0f;
   for (j = 0; j < 3; ++j) {
     f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
   f->initialised = 0u;
-  /* empty window, no prediction before the first full window; the features at TCF_FS (the export's
-     TCF_MAX_FS is TCF_FS, so this cannot fail) */
-  (void)tcf_features_init(&f->feat, TCF_FS);
+  (void)tcf_features_init(&f->feat, fs);  /* TCF_OK: the checks of tcf_features_rate above */
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = 0.0f;
+  return TCF_OK;
 }
 
 /* inloop_batch, one sample: push the features; at a window end (every hop samples once the window is
@@ -235,7 +276,7 @@ void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc
 }
 
 void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
-  tcf_filter_update_dt(f, gyr, acc, mag, TCF_DT);
+  tcf_filter_update_dt(f, gyr, acc, mag, f->c.ts);
 }
 
 void tcf_filter_quat(const tcf_filter_t *f, float q[4]) {

@@ -11,19 +11,24 @@
  * magnetometer's direction enters the orientation; the features use its norm relative to a
  * running reference).
  *
- * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
- * no globals written). At a window end tcf_features_push keeps the feature row and the
- * outputs on the stack (TCF_N_FEATURES + TCF_N_OUTPUTS floats); in all, 560 bytes of stack for
- * a 55-feature export (feature version 2; gcc -fstack-usage -fcallgraph-info, rv32imc -Os, the
- * deepest chain tcf_filter_update -> tcf_predict over the three sources as one unit,
- * togglecf.embedded.toolchain.call_chain_stack).
- * Reentrant: one tcf_filter_t per sensor.
+ * Rate at init (as the learned VQF, tcf_vqf_toggling.h): tcf_filter_init(&f, fs) takes the
+ * sampling rate fs [Hz] (up to TCF_MAX_FS of tcf_config.h) and derives every per-sample constant
+ * from it and the settings, which are physical (time constants in seconds, TCF_TAU_*), as the
+ * Python filter's _coefficients at that rate: the per-state gains k = 1 - exp(-Ts/tau) with
+ * Ts = 1/fs, the cautious fallback gains (per sensor the smallest of them), the output blend
+ * gamma and the bias gain, and the features' window, hop and EMA gains (tcf_features.h). Nothing is
+ * fixed to the training rate: one build runs a 100, 200 or 400 Hz IMU.
+ * Per-sample dt: tcf_filter_update_dt(&f, gyr, acc, mag, dt) integrates the gyro over the actual
+ * dt [s] (as TogglingFilter.update_batch(..., dt=...)); everything else runs at the nominal rate
+ * of init, as in the Python filter: the gains and the features (which count samples). A dt that
+ * is not finite, <= 0 or > TCF_MAX_DT skips the gyro integration of that sample (lost samples).
  *
- * Rate: call tcf_filter_update exactly once per sample at TCF_FS Hz (the rate the models and
- * gains were exported for, see tcf_config.h): the per-sample gains are fixed to it, and
- * tcf_filter_init sets the features (window, hop) to it (TCF_MAX_FS = TCF_FS: the ring holds
- * exactly one window). Unlike the learned VQF (tcf_vqf_toggling.h), whose rate is set at init. tcf_filter_update_dt takes another dt for the gyro integration only (lost
- * samples); the features still count samples.
+ * Memory: everything lives in tcf_filter_t (fixed size, TCF_STATE_BYTES bytes; no heap,
+ * no globals written). Its feature ring is sized for TCF_MAX_FS. At a window end
+ * tcf_features_push keeps the feature row and the outputs on the stack (TCF_N_FEATURES +
+ * TCF_N_OUTPUTS floats); the deepest chain is tcf_filter_update -> tcf_predict (measure it with
+ * togglecf.embedded.toolchain.unit_chain_stack over the three sources as one unit, -Os).
+ * Reentrant: one tcf_filter_t per sensor.
  *
  * Bad samples (policy of togglecf.filters.base): non-finite or saturated gyro (|w| >= 34.9
  * rad/s on an axis) -> no propagation; non-finite or zero-norm acc -> no correction; non-finite
@@ -44,7 +49,19 @@
 extern "C" {
 #endif
 
+/* the per-sample constants at the rate of tcf_filter_init (TogglingCoefficients of the Python filter) */
+typedef struct tcf_filter_coeffs {
+  float ts;                           /* nominal sampling time 1/fs [s] (tcf_filter_update's dt) */
+  float alpha_acc[TCF_N_CLASSES];     /* per-state accelerometer gains 1 - exp(-Ts / tau_acc) */
+  float alpha_mag[TCF_N_CLASSES];     /* per-state magnetometer gains 1 - exp(-Ts / tau_mag) */
+  float alpha_fallback_acc;           /* the cautious gains of the fallback: the smallest per-state ones */
+  float alpha_fallback_mag;
+  float gamma;                        /* output blend, 1 - exp(-Ts / output_tau) (1: tau 0) */
+  float bias_gain;                    /* gyro bias learning, 1 - exp(-Ts / bias_tau) (0: off) */
+} tcf_filter_coeffs_t;
+
 typedef struct tcf_filter {
+  tcf_filter_coeffs_t c;  /* per-sample constants at the init rate */
   /* orientation filter (toggle_step) */
   float q[4];          /* orientation, sensor -> ENU, [w x y z] */
   float bias[3];       /* gyro bias estimate [rad/s] */
@@ -59,18 +76,24 @@ typedef struct tcf_filter {
   float p_static;      /* probability of the rest class (bias learning) */
 } tcf_filter_t;
 
-/* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time) */
-#define TCF_STATE_BYTES (4 * (50 + TCF_N_LAST + TCF_RING_COLS * TCF_WINDOW_MAX + TCF_N_CLASSES))
+/* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time): the coefficients
+   (5 + 2 S), the filter (14 + 3 diagnostics), the features (TCF_FEATURES_STATE_BYTES) */
+#define TCF_STATE_BYTES (4 * (22 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
 
-/* Reset: identity orientation, not initialised, empty window, no prediction. */
-void tcf_filter_init(tcf_filter_t *f);
+/* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
+   settings (see "Rate at init"), identity orientation, not initialised, empty window, no
+   prediction. Returns TCF_OK (0), or (f untouched) TCF_ERR_RATE (fs not finite and > 0),
+   TCF_ERR_RATE_MAX (fs > TCF_MAX_FS) or TCF_ERR_SETTINGS (1/fs > TCF_MAX_DT: the gyro would never
+   be integrated). */
+int tcf_filter_init(tcf_filter_t *f, float fs);
 
-/* One sample at TCF_FS: gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no magnetometer, the
-   feature channels then see zeros, as the Python filter in 6D). With TCF_USE_MAG == 0 the
-   orientation ignores mag (the features still use it when given). */
+/* One sample at the init rate (dt = 1/fs): gyr [rad/s], acc [m/s^2], mag [uT] (NULL: no
+   magnetometer, the feature channels then see zeros, as the Python filter in 6D). With
+   TCF_USE_MAG == 0 the orientation ignores mag (the features still use it when given). */
 void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3]);
 
-/* Same with the gyro integration step dt [s] (integrated only when 0 < dt <= TCF_MAX_DT). */
+/* Same with the actual time step dt [s] since the previous sample, for the gyro integration (see
+   "Per-sample dt"). */
 void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt);
 
 /* The toggling step alone with a prediction made elsewhere (TogglingFilter.update with
@@ -84,8 +107,8 @@ void tcf_filter_update_pred(tcf_filter_t *f, const float gyr[3], const float acc
 void tcf_filter_quat(const tcf_filter_t *f, float q[4]);
 
 /* Held prediction pred[TCF_N_PRED]: class probabilities (order TCF_CLASS_NAMES), eta_a xyz,
-   eta_m xyz. Returns 0 when there is none (pred is NaN: before the first full window, or the
-   window was out of the training range, tcf_features_fallback), 1 otherwise. */
+   eta_m xyz (tcf_prediction.h). Returns 0 when there is none (pred is NaN: before the first full
+   window, or the window was out of the training range, tcf_features_fallback), 1 otherwise. */
 int tcf_filter_prediction(const tcf_filter_t *f, float pred[TCF_N_PRED]);
 
 /* Feature row feat[TCF_N_FEATURES] (names: togglecf.features.feature_schema) of the window

@@ -1,13 +1,17 @@
 /* tcf_harness.c: host program that runs the exported filter over a CSV file (C99).
  *
- *   tcf_harness [--no-mag] [--diag] [--time] [--features feat.csv] [--pred pred.csv] in.csv out.csv
+ *   tcf_harness [--fs HZ] [--no-mag] [--diag] [--time] [--features feat.csv] [--pred pred.csv] in.csv out.csv
  *
- * in.csv: a header line, then one row per sample at TCF_FS Hz with the columns
+ * in.csv: a header line, then one row per sample at the rate --fs (default TCF_DEFAULT_FS of
+ * tcf_config.h) with the columns
  *   gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z   (rad/s, m/s^2, uT)
- * or only the six gyr/acc columns (no magnetometer: mag = NULL). An empty field, "nan" or
- * "inf" makes a bad sample (handled by the filter's bad-sample policy).
+ * or only the six gyr/acc columns (no magnetometer: mag = NULL), either optionally with a last
+ * column dt [s]: the time step of each sample (tcf_filter_update_dt; without it
+ * tcf_filter_update, dt = 1 / fs). An empty field, "nan" or "inf" makes a bad sample (handled
+ * by the filter's bad-sample policy).
  * out.csv: a header line, then w,x,y,z per sample (sensor -> ENU).
  * Options:
+ *   --fs HZ          the rate passed to tcf_filter_init (an error above TCF_MAX_FS);
  *   --no-mag         pass mag = NULL even when the file has mag columns;
  *   --diag           add the held prediction (p_<class>..., eta_acc_xyz, eta_mag_xyz), the
  *                    gains used (alpha_acc, alpha_mag) and fallback (1: the held window was out
@@ -32,19 +36,28 @@
 static const char *const class_names[TCF_N_CLASSES] = TCF_CLASS_NAMES_INIT;
 
 int main(int argc, char **argv) {
-  const char *feat_path = NULL;
-  const tcf_csv_option_t features_opt = {"--features", NULL, &feat_path};
+  const char *feat_path = NULL, *fs_arg = NULL;
+  const tcf_csv_option_t opts[2] = {{"--features", NULL, &feat_path}, {"--fs", NULL, &fs_arg}};
+  float fs = (float)TCF_DEFAULT_FS;
   int status, k;
   long s;
   FILE *ffeat = NULL;
   tcf_csv_learned_t h;
-  tcf_filter_t f;
+  static tcf_filter_t f;
   clock_t t0, t1;
 
   h.n_diag = N_DIAG;
-  status = tcf_csv_learned_begin(PROG, argc, argv, &features_opt, 1, "[--no-mag] [--diag] [--time] [--features "
-                                 "feat.csv] [--pred pred.csv] in.csv out.csv", (double)TCF_FS, TCF_N_PRED, &h);
+  status = tcf_csv_learned_begin(PROG, argc, argv, opts, 2, "[--fs HZ] [--no-mag] [--diag] [--time] [--features "
+                                 "feat.csv] [--pred pred.csv] in.csv out.csv", (double)TCF_DEFAULT_FS, TCF_N_PRED, &h);
   if (status) return status;
+  if (fs_arg) fs = strtof(fs_arg, NULL);
+  status = tcf_filter_init(&f, fs);
+  if (status != TCF_OK) {
+    tcf_csv_learned_free(&h);
+    fprintf(stderr, PROG ": tcf_filter_init(fs = %g Hz) returned %d (%s)\n", (double)fs, status,
+            status == TCF_ERR_RATE_MAX ? "above TCF_MAX_FS" : status == TCF_ERR_RATE ? "not a rate" : "1/fs > TCF_MAX_DT");
+    return 1;
+  }
   if (feat_path) {
     ffeat = fopen(feat_path, "w");
     if (!ffeat) {
@@ -53,12 +66,11 @@ int main(int argc, char **argv) {
     }
   }
 
-  tcf_filter_init(&f);
   t0 = clock();
   for (s = 0; s < h.n; ++s) {
     const float *r = h.x + 9 * s;
     if (h.px)
-      tcf_filter_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt ? h.dt[s] : TCF_DT,
+      tcf_filter_update_pred(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt ? h.dt[s] : f.c.ts,
                              h.px + (long)TCF_N_PRED * s);
     else if (h.dt)
       tcf_filter_update_dt(&f, r, r + 3, h.no_mag ? NULL : r + 6, h.dt[s]);

@@ -3,6 +3,9 @@
  *   toggling/inloop.py         inloop_batch, one sample (models: tcf_features_push) -> tcf_vqft_update_dt
  *   filters/vqf_toggling.py    vqf_toggling_step, modulate, reset     -> tcf_vqft_step, tcf_vqft_modulate,
  *                                                                       tcf_vqft_init
+ *   filters/prediction.py      blend_trust (the learned VQF's own fallback rule) -> tcf_vqft_blend_trust;
+ *                              the shared steps (class_evidence, remove_noise, predicted_disturbance,
+ *                              back_off): tcf_prediction.h
  * The core step is tcf_vqf_update_mod (tcf_vqf.c). "step N": the module docstring of
  * filters/vqf_toggling.py.
  */
@@ -10,6 +13,7 @@
 #include <stddef.h>
 #include "tcf_vqf_toggling.h"
 #include "tcf_vqf_config.h"
+#include "tcf_prediction.h"  /* the prediction row as named fields, steps 1, 3, 4 */
 
 #if defined(__FAST_MATH__)
 #error "tcf_vqf_toggling.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
@@ -36,44 +40,50 @@ static const float tcf_ln_sigma[TCF_N_CLASSES] = TCF_VQFT_LN_SIGMA_MOTION_INIT;
 /* per-state ln rest thresholds: th_omega [ln rad/s], th_a [ln m/s^2] */
 static const float tcf_ln_rest_gyr[TCF_N_CLASSES] = TCF_VQFT_LN_REST_TH_GYR_INIT;
 static const float tcf_ln_rest_acc[TCF_N_CLASSES] = TCF_VQFT_LN_REST_TH_ACC_INIT;
-/* entries of the prediction the modulation depends on: the class probabilities, and eta_m when
-   the predicted disturbance scales the heading gain (step 3) */
-#define TCF_VQFT_N_WATCHED (TCF_N_CLASSES + (TCF_VQFT_MAG_DIST_SCALE > 0.0f ? 6 : 0))
 /* mag = NULL: the features see zeros (and with TCF_USE_MAG == 0 the core ignores mag) */
 static const float tcf_vqft_zeros[3] = {0.0f, 0.0f, 0.0f};
 
-/* _prediction_changed: the watched entries of pred differ from the last ones (NaN equals NaN) */
-static int tcf_vqft_changed(const tcf_vqft_t *f, const float *pred) {
+/* a != b, where NaN equals NaN (one entry of _prediction_changed) */
+static int tcf_vqft_differ(float a, float b) { return a != b && !(isnan(a) && isnan(b)); }
+
+/* _prediction_changed: the entries of the prediction the modulation depends on differ from the last
+   ones (NaN equals NaN): the class probabilities, and eta when the predicted disturbance scales the
+   heading gain (step 3) */
+static int tcf_vqft_changed(const tcf_vqft_t *f, const tcf_prediction_t *pred) {
+  const tcf_prediction_t *last = &f->last_p;
   int s;
-  for (s = 0; s < TCF_VQFT_N_WATCHED; ++s) {
-    float a = pred[s], b = f->last_p[s];
-    if (a != b && !(isnan(a) && isnan(b))) return 1;
-  }
+  for (s = 0; s < TCF_N_CLASSES; ++s)
+    if (tcf_vqft_differ(pred->probabilities[s], last->probabilities[s])) return 1;
+  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)
+    for (s = 0; s < 3; ++s)
+      if (tcf_vqft_differ(pred->eta_acc[s], last->eta_acc[s]) || tcf_vqft_differ(pred->eta_mag[s], last->eta_mag[s]))
+        return 1;
   return 0;
 }
 
+/* Step 1, the learned VQF's fallback rule (prediction.blend_trust: a blend, unlike the toggling CF's
+   hard switch in tcf_filter.c; prediction.py's docstring says why): the trust lambda in [0, 1] of the
+   learned values, clip((c - c0) / (1 - c0), 0, 1) with c = top / total; 0 when not valid. */
+static float tcf_vqft_blend_trust(int valid, float top, float total) {
+  float lam;
+  if (!valid) return 0.0f;
+  lam = (top / total - TCF_VQFT_CONFIDENCE_FLOOR) / (1.0f - TCF_VQFT_CONFIDENCE_FLOOR);
+  return lam < 0.0f ? 0.0f : (lam > 1.0f ? 1.0f : lam);
+}
+
 /* modulate, steps 1-3: blend the per-state values with the probabilities, derive the coefficients */
-static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
-  float total = 0.0f, top = 0.0f, lam = 0.0f;
+static void tcf_vqft_modulate(tcf_vqft_t *f, const tcf_prediction_t *pred) {
+  float total, top, lam;
   float la = TCF_VQFT_LN_TAU_ACC_CORE, lm = TCF_VQFT_LN_TAU_MAG_CORE, ls = TCF_VQFT_LN_SIGMA_MOTION_CORE;
   float lg = TCF_VQFT_LN_REST_TH_GYR_CORE, lc = TCF_VQFT_LN_REST_TH_ACC_CORE;
-  int s, ok = 1;
-  for (s = 0; s < TCF_N_CLASSES + 6; ++s) f->last_p[s] = pred[s];
-  for (s = 0; s < TCF_N_CLASSES; ++s) {
-    float v = pred[s];
-    if (!(v >= 0.0f && v < INFINITY)) {
-      ok = 0;
-    } else {
-      total += v;
-      if (v > top) top = v;
-    }
-  }
-  if (ok && total > 0.0f) {  /* step 1 */
+  int s, valid;
+  f->last_p = *pred;
+  valid = tcf_class_evidence(pred, &top, &total);
+  lam = tcf_vqft_blend_trust(valid, top, total);
+  if (valid) {  /* step 2 (lambda = 0 still blends: the core's values times 1, as Python) */
     float ma = 0.0f, mm = 0.0f, msg = 0.0f, mg = 0.0f, mc = 0.0f;
-    lam = (top / total - TCF_VQFT_CONFIDENCE_FLOOR) / (1.0f - TCF_VQFT_CONFIDENCE_FLOOR);
-    lam = lam < 0.0f ? 0.0f : (lam > 1.0f ? 1.0f : lam);
-    for (s = 0; s < TCF_N_CLASSES; ++s) {  /* step 2 */
-      float w = pred[s] / total;
+    for (s = 0; s < TCF_N_CLASSES; ++s) {
+      float w = pred->probabilities[s] / total;
       ma += w * tcf_ln_tau_acc[s];
       mm += w * tcf_ln_tau_mag[s];
       msg += w * tcf_ln_sigma[s];
@@ -101,12 +111,8 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const float *pred) {
   f->mod.rest_th_acc_sq = expf(2.0f * lc);
   f->follow[5] = f->mod.k_mag;
 #if TCF_USE_MAG
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f) {  /* the predicted disturbance (|eta_m| / sigma_m)^2 (NaN: none) */
-    const float *em = pred + TCF_N_CLASSES + 3;
-    float e = (em[0] * em[0] + em[1] * em[1] + em[2] * em[2])
-              / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
-    if (e >= 0.0f) f->follow[4] = e;
-  }
+  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)  /* the predicted disturbance (|eta_m| / sigma_m)^2 (0 for NaN: none) */
+    f->follow[4] = tcf_predicted_disturbance(pred, TCF_VQFT_MAG_DIST_SCALE);
 #endif
 }
 
@@ -151,19 +157,18 @@ static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
     float em = tcf_vqft_field_deviation_sq(&f->core, mag) / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
     if (em < e) e = em;
   }
-  f->mod.k_mag = f->follow[5] / (1.0f + e);
+  f->mod.k_mag = tcf_back_off(f->follow[5], e);
 }
 #endif
 
 /* vqf_toggling_step with the held prediction f->feat.pred */
 static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
-  const float *pred = f->feat.pred;
+  tcf_prediction_t pred;
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
-  const float *eta = pred + TCF_N_CLASSES;  /* eta_a xyz, eta_m xyz */
   float a_d[3], m_d[3];
-  int j, eta_ok = 1;
 #endif
-  if (tcf_vqft_changed(f, pred)) tcf_vqft_modulate(f, pred);
+  tcf_prediction_from_row(f->feat.pred, &pred);
+  if (tcf_vqft_changed(f, &pred)) tcf_vqft_modulate(f, &pred);
 #if TCF_VQFT_FOLLOW
   tcf_vqft_follow(f);
 #endif
@@ -171,14 +176,11 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DIST_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
 #endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
-  for (j = 0; j < 6; ++j)
-    if (!isfinite(eta[j])) eta_ok = 0;
-  for (j = 0; j < 3; ++j) {  /* step 4: noise removal (a weight of 0 is left out: a - 0 eta = a) */
-    a_d[j] = (TCF_VQFT_NOISE_ACC && eta_ok) ? acc[j] - TCF_VQFT_NOISE_WEIGHT_ACC * eta[j] : acc[j];
-    m_d[j] = (TCF_VQFT_NOISE_MAG && eta_ok) ? mag[j] - TCF_VQFT_NOISE_WEIGHT_MAG * eta[3 + j] : mag[j];
-  }
-  acc = a_d;
-  mag = m_d;
+  /* step 4, the learned VQF's rule: whenever eta is finite, whatever the probabilities; a sensor whose
+     weight is 0 keeps its sample as is (a - 0 eta = a) */
+  (void)tcf_remove_noise(&pred, acc, mag, TCF_VQFT_NOISE_WEIGHT_ACC, TCF_VQFT_NOISE_WEIGHT_MAG, 1, a_d, m_d);
+  if (TCF_VQFT_NOISE_ACC) acc = a_d;
+  if (TCF_VQFT_NOISE_MAG) mag = m_d;
 #endif
   tcf_vqf_update_mod(&f->core, gyr, acc, mag, dt, &f->mod);  /* step 5 */
 }
@@ -187,13 +189,15 @@ int tcf_vqft_init(tcf_vqft_t *f, float fs) {
   static const tcf_vqf_params_t settings = TCF_VQF_PARAMS_INIT;  /* physical: rate-free */
   tcf_vqf_params_t p = settings;
   tcf_features_rate_t r;
+  float nan_row[TCF_N_PRED];
   int s = tcf_features_rate(fs, &r);
   if (s != TCF_OK) return s;  /* checks fs before the core sees it */
   p.fs = fs;
   if (tcf_vqf_init(&f->core, &p) != 0) return TCF_ERR_SETTINGS;
   tcf_features_init(&f->feat, fs);  /* TCF_OK: the same checks as tcf_features_rate */
   tcf_vqf_base_mod(&f->core, &f->mod);  /* no prediction seen yet: the core's coefficients */
-  for (s = 0; s < TCF_N_CLASSES + 6; ++s) f->last_p[s] = NAN;
+  for (s = 0; s < TCF_N_PRED; ++s) nan_row[s] = NAN;
+  tcf_prediction_from_row(nan_row, &f->last_p);  /* none seen yet */
   f->tau_acc = p.tau_acc;
   f->tau_mag = p.tau_mag;
   f->trust = 0.0f;

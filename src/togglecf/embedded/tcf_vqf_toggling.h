@@ -54,7 +54,7 @@ typedef struct tcf_vqft {
   tcf_vqf_t core;          /* the VQF core (its settings' coefficients inside) */
   tcf_features_t feat;     /* feature window and held prediction */
   tcf_vqf_mod_t mod;       /* coefficients in use (steps 1-3 of the last prediction change) */
-  float last_p[TCF_N_CLASSES + 6];  /* the prediction the modulation was made from (NaN: none) */
+  tcf_prediction_t last_p;  /* the prediction the modulation was made from (NaN: none) */
   float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
   float follow[6];  /* target ln tau_acc, ln tau_mag; the followed ones (modulation_tau); the predicted
                        disturbance (|eta_m| / sigma_m)^2; k_mag before the back-off */

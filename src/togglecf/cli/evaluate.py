@@ -119,11 +119,11 @@ def _evaluated_specs(args) -> list:
 def _warn_if_trained_on(spec, index, names) -> None:
     """A learned filter scored on trials its models were trained on: one warning line."""
     files = {n: index.available[n] for n in names}
-    if spec.models:
+    if spec.name == LEARNED_VQF:  # the shipped model, or a portable file (--models)
+        _warn_in_sample(trained_files_among(load_pretrained(spec.models).metadata.get("data_files", {}), files),
+                        spec.models or "the pretrained learned VQF", names)
+    elif spec.models:
         _warn_in_sample(training_trials_among(spec.models, files), spec.models, names)
-    elif spec.name == LEARNED_VQF:
-        _warn_in_sample(trained_files_among(load_pretrained().metadata.get("data_files", {}), files),
-                        "the pretrained learned VQF", names)
 
 
 def _report_one(args, spec, sweep, index, names) -> int:

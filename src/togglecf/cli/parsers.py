@@ -309,7 +309,10 @@ def add_export_parser(subparsers):
     """``togglecf export``: register on the CLI's subparsers (sets ``func``)."""
     sp = subparsers.add_parser("export", help="export a model directory as C code (TL2cgen or compact arrays), "
                                "checked against the Python models, with object sizes")
-    sp.add_argument("--models", required=True, metavar="DIR", help="a `togglecf train` model directory")
+    sp.add_argument("--models", metavar="DIR|FILE", help="a `togglecf train` model directory, or with --filter "
+                    "vqf_toggling a portable model FILE.npz (from `togglecf train --from-pretrained`); default: "
+                    "with --filter vqf_toggling the pretrained learned VQF the package ships (the C filter alone: "
+                    "its trees are already compiled), else required")
     sp.add_argument("--out", required=True, metavar="DIR", help="output directory, e.g. build/embedded/NAME")
     sp.add_argument("--format", choices=("tl2cgen", "array", "both"), default="both")
     sp.add_argument("--quantize", action="store_true", help="TL2cgen: quantized thresholds (integer compares)")

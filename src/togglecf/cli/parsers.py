@@ -220,8 +220,10 @@ def add_plot_parser(subparsers):
     psub = p.add_subparsers(dest="plot_kind", required=True)
 
     def common(sp):
-        sp.add_argument("--trial", required=True, help="one trial number or name, e.g. 05")
-        sp.add_argument("--data", metavar="DIR", help="BROAD directory (default: as `togglecf evaluate`)")
+        sp.add_argument("--trial", required=True, help="one trial number or name, e.g. 05; with several --data, "
+                        "<dir name>/<trial> (e.g. tyrex_nexus5/Jakob_Nexus5_Dist_AR) when the name alone matches "
+                        "trials of several directories")
+        sp.add_argument("--data", metavar="DIR", action="append", default=None, help=DATA_HELP)
         sp.add_argument("--models", metavar="DIR|FILE", help="model directory for the toggling filter, or a "
                         "portable model FILE.npz for learned_vqf (from `togglecf train --from-pretrained`; default: "
                         "the shipped model)")

@@ -11,6 +11,7 @@ import numpy as np
 
 from togglecf.cli.filter_list import filter_names, filter_specs
 from togglecf.cli.parsers import add_plot_parser
+from togglecf.cli.common import data_dirs
 from togglecf.data.broad import open_index
 from togglecf.registry import LEARNED_VQF, TOGGLING, TRAINED, FilterSpec, is_portable_file
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
@@ -20,10 +21,12 @@ __all__ = ["add_plot_parser", "cmd_plot_euler", "cmd_plot_error", "cmd_plot_3d"]
 
 def _load_trial(args):
     matplotlib.use("Agg")  # the commands only write files
-    index = open_index(args.data)
+    index = open_index(data_dirs(args))  # one --data directory or several, as evaluate
     names = index.select(args.trial)
     if len(names) != 1:
-        raise ValueError(f"--trial {args.trial!r} matches {len(names)} trials; give one")
+        shown = f" ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})" if names else ""
+        raise ValueError(f"--trial {args.trial!r} matches {len(names)} trials{shown}; give one"
+                         + (" as <dir name>/<trial>" if len(names) > 1 else ""))
     return index.load(names[0])
 
 

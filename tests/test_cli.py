@@ -237,3 +237,16 @@ def test_export_prints_no_library_version_warnings(tiny_model_dir, mini_index, t
     noise = [ln for ln in (out + err).splitlines()
              if re.search(r"Treelite version|deprecat|Parallel compilation|Warning:|\.cc:\d+:", ln, re.IGNORECASE)]
     assert noise == []
+
+
+def test_results_json_stores_the_settings_as_json_fields(tmp_path):
+    """results.json's ``settings``: a JSON object naming the settings class and each field (read back with
+    json), not a Python repr a reader would have to parse."""
+    data = make_broad_dir(tmp_path / "b", ["01_a"], ["01_a"])
+    out = tmp_path / "report"
+    assert main(["evaluate", "--filter", "cf", "--param", "tau=0.3482", "--data", str(data), "--out", str(out),
+                 "--jobs", "1"]) == 0
+    text = (out / "results.json").read_text()
+    settings = json.loads(text)["settings"]
+    assert settings["kind"].endswith("Settings") and settings["fields"]["tau"] == 0.3482
+    assert "Settings(" not in text

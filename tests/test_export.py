@@ -277,3 +277,42 @@ def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
     assert 8 * forest.n_outputs <= stack < 1024
     with pytest.raises(RuntimeError, match="no stack-usage entry"):
         toolchain.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")
+
+
+def test_export_without_models_writes_the_pretrained_learned_vqf(mini_trial, tmp_path, capsys):
+    """``export --filter vqf_toggling`` with no ``--models``: the shipped portable model as the C filter,
+    which computes what ``LearnedVQF`` computes. Driven by the Python filter's own predictions the C is
+    float32 against float64 arithmetic only: within the bound the model-directory export is held to on
+    the same cut (``test_cvqf_toggling.ARITH_TOL["mini"]``, 0.001°)."""
+    import json
+
+    from togglecf.cli.main import main
+    from togglecf.core.io import file_sha256
+    from togglecf.embedded import cvqf_toggling as cv
+    from togglecf.core.quaternion import angle_between
+    from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF
+
+    if not PRETRAINED_FILE.is_file():
+        pytest.skip("this checkout ships no pretrained model")
+    out = tmp_path / "emb"
+    assert main(["export", "--filter", "vqf_toggling", "--no-riscv", "--out", str(out)]) == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["source"] == str(PRETRAINED_FILE) and set(report) == {"source", "filter"}  # no XGBoost trees
+    assert file_sha256(PRETRAINED_FILE)[:12] in (out / "filter" / "tcf_config.h").read_text()  # names its model
+    t = mini_trial
+    py = LearnedVQF(t.fs).update_batch(t.gyr, t.acc, t.mag)
+    names = [f"p_{c}" for c in report["filter"]["class_names"]] + [
+        f"eta_{k}_{ax}" for k in ("acc", "mag") for ax in "xyz"]
+    P = np.stack([py.diagnostics[k] for k in names], axis=1)
+    qc = cv.run_vqft_harness(cv.build_vqft_harness(out / "filter"), t.gyr, t.acc, t.mag, predictions=P, fs=t.fs)
+    assert np.degrees(angle_between(qc, py.quat)).max() <= 0.001
+
+
+def test_export_refuses_a_portable_file_for_the_toggling_cf(tmp_path, capsys):
+    from togglecf.cli.main import main
+
+    assert main(["export", "--out", str(tmp_path / "a")]) == 1  # --filter toggling needs a model directory
+    assert "--models DIR is required" in capsys.readouterr().err
+    assert main(["export", "--models", "x.npz", "--out", str(tmp_path / "b")]) == 1
+    err = capsys.readouterr().err
+    assert "export it with --filter vqf_toggling" in err and "Traceback" not in err

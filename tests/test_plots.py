@@ -319,3 +319,23 @@ def test_cli_plot_real_trial(tmp_path, broad_index):
           "--duration", "2", "--out", str(gif)])
     assert gif.read_bytes()[:6] == b"GIF89a"
     plt.close("all")
+
+
+def test_cli_plot_takes_several_data_directories(tmp_path, mini_index, mini_names, monkeypatch):
+    """``--data A --data B``: the trials of both directories reach the plot (names ``<dir>/<trial>``),
+    and a trial name found in both is refused with the candidates named."""
+    import shutil
+
+    import togglecf.cli.plot as cli_plot
+
+    for d in ("alpha", "beta"):
+        shutil.copytree(mini_index.root, tmp_path / d)
+    plotted = []
+    monkeypatch.setattr(cli_plot, "plot_error", lambda trial, est, **kw: plotted.append((trial.name, sorted(est))))
+    data = ["--data", str(tmp_path / "alpha"), "--data", str(tmp_path / "beta")]
+    for which in ("alpha", "beta"):
+        _cli(["plot", "error", "--trial", f"{which}/{mini_names[2]}", "--filters", "madgwick", *data,
+              "--out", str(tmp_path / "e.png")])
+    assert plotted == [(f"alpha/{mini_names[2]}", ["madgwick"]), (f"beta/{mini_names[2]}", ["madgwick"])]
+    with pytest.raises(ValueError, match=r"matches 2 trials \(alpha/.*beta/.*\); give one as <dir name>/<trial>"):
+        _cli(["plot", "error", "--trial", "24", "--filters", "madgwick", *data, "--out", str(tmp_path / "e.png")])

@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 import zipfile
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -133,3 +134,100 @@ def test_model_card_states_data_licences_and_the_check(mini_index):
     assert "| broad_mini | 3 | 285.714 |" in card and "| vqf_9d | 1, 3 | 0 | 10 | True |" in card
     assert all(f"> {line}" in card for line in notice)
     assert "vqf_6d: every learned value equals VQF's" in card and "vqf_9d: τ_acc per state" in card
+
+
+#: three real Nexus 5 trials (tyrex_nexus5 beside the repository) for the re-tuning
+RETUNE_DATA = ROOT.parent / "shared" / "data" / "tyrex_nexus5"
+RETUNE_TRIALS = "Guillaume_Nexus5_Dist_AR,Guillaume_Nexus5_Dist_Texting,Jakob_Nexus5_Dist_Phoning"
+#: a short search (a few values per coordinate, one sweep) so that the test takes seconds, not minutes
+RETUNE_CONFIG = """[run]
+nthread = 1
+[gains.vqf]
+tau_acc = [2.0, 3.0, 5.0]
+confidence_floor = [0.0]
+mag_disturbance_scale = [0.0, 10.0]
+sweeps = 1
+"""
+
+
+@pytest.fixture(scope="module")
+def retuned(tmp_path_factory):
+    """``togglecf train --from-pretrained`` on three Nexus 5 trials, run through the command line."""
+    if not (RETUNE_DATA / "trials.json").is_file():
+        pytest.skip(f"the phone data is not beside the repository ({RETUNE_DATA})")
+    if not PRETRAINED_FILE.is_file():
+        pytest.skip("this checkout ships no pretrained model")
+    from togglecf.cli.main import main
+    d = tmp_path_factory.mktemp("retune")
+    (d / "small.toml").write_text(RETUNE_CONFIG)
+    assert main(["train", "--from-pretrained", "--config", str(d / "small.toml"), "--data", str(RETUNE_DATA),
+                 "--trials", RETUNE_TRIALS, "--out", str(d / "out")]) == 0
+    return d / "out" / "learned_vqf.npz"
+
+
+def test_retune_keeps_the_forest_and_stores_the_searched_settings(retuned):
+    from togglecf.toggling.gains import VQFGainSearch
+    from togglecf.toggling.pretrained import pretrained_settings
+    pre, new = load_portable(PRETRAINED_FILE), load_portable(retuned)
+    for name, a in pre.models.forest.as_arrays().items():  # the models are not retrained
+        assert np.array_equal(a, new.models.forest.as_arrays()[name]), name
+    assert new.models.schema_hash == pre.models.schema_hash
+    assert np.array_equal(new.models.feature_low, pre.models.feature_low)
+    meta = new.metadata
+    assert meta["retuned_from"] == {"file": PRETRAINED_FILE.name, "sha256": file_sha256(PRETRAINED_FILE),
+                                    "recipe": pre.metadata.get("recipe")}
+    assert meta["retune_trials"] == RETUNE_TRIALS.split(",")
+    assert set(meta["search"]) == set(pre.gains) == set(new.gains)  # 9D and 6D, as the pretrained has both
+    grid = VQFGainSearch(tau_acc=(2.0, 3.0, 5.0))
+    for mode, rep in meta["search"].items():
+        accepted = {p: v for p, v, _ in rep["history"][1:]}  # the coordinates the descent moved, and where to
+        s = new.gains[mode] if rep["kept"] == "search" else None
+        if s is not None:  # the stored settings are the descent's end: its accepted steps applied to the core
+            start = asdict(grid.start(pre.models.class_names))
+            for p, v in accepted.items():
+                name, _, state = p.partition("[")
+                if state:
+                    start[name] = list(start[name])
+                    start[name][list(pre.models.class_names).index(state[:-1])] = v
+                else:
+                    start[name] = v
+            assert json.loads(json.dumps(start)) == s
+            assert set(s["tau_acc_states"]) <= {2.0, 3.0, 5.0}  # from the test's grid, not the pretrained's
+        else:
+            assert new.gains[mode] == pre.gains[mode]
+        use_mag = mode == "vqf_9d"
+        assert LearnedVQF(100.0, use_mag=use_mag, model=retuned).settings == pretrained_settings(use_mag, retuned)
+
+
+def test_retuned_is_not_worse_on_the_objective_it_minimised(retuned):
+    """What the search guarantees: the descent only accepts a step that lowers the objective, so it ends at
+    or below its start (the core's settings, objective 0 for the log ratio); keeping the better of its end
+    and the pretrained settings makes the result at most the pretrained's value too. Recomputed here from
+    the stored settings on the same trials, to the float (the same deterministic runs)."""
+    from togglecf.data.broad import open_index
+    from togglecf.toggling.gains import MODES, objective_value, settings_from_dict, trial_datasets, trial_total_rmse
+    from togglecf.filters.vqf_toggling import VQFTogglingSettings
+    new = load_portable(retuned)
+    index = open_index([str(RETUNE_DATA)])
+    trials = [index.load(n) for n in index.select(RETUNE_TRIALS)]
+    preds = [new.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in trials]
+    for mode, rep in new.metadata["search"].items():
+        hist = [o for _, _, o in rep["history"]]
+        assert all(b < a for a, b in zip(hist, hist[1:]))  # each accepted step lowered it
+        kept = min(rep["objective_search"], rep["objective_pretrained"])
+        assert kept <= rep["objective_core"] and kept <= rep["objective_pretrained"]
+        use_mag = MODES[mode][1]
+        core = trial_total_rmse(VQFTogglingSettings(states=tuple(new.models.class_names), modulation_tau=3.0),
+                                trials, preds, use_mag)
+        mine = trial_total_rmse(settings_from_dict(VQFTogglingSettings, new.gains[mode]), trials, preds, use_mag)
+        assert objective_value(new.metadata["objective"], mine, core, trial_datasets(trials)) == pytest.approx(
+            kept, abs=1e-12)  # the stored settings score what the search reported
+
+
+def test_retuned_model_runs_in_evaluate(retuned, capsys):
+    from togglecf.cli.main import main
+    assert main(["evaluate", "--data", str(RETUNE_DATA), "--trials", RETUNE_TRIALS.split(",")[0], "--jobs", "1",
+                 "--models", str(retuned)]) == 0
+    captured = capsys.readouterr()
+    assert "mean over 1 trials" in captured.out
+    assert "used to train" in captured.err  # re-tuned on that trial: its score is flagged as in-sample

@@ -30,9 +30,22 @@ def test_the_pretrained_filter_needs_no_models_and_takes_none():
     assert isinstance(f, LearnedVQF) and f.fs == 100.0 and not f.use_mag
     assert spec.identity() == file_sha256(PRETRAINED_FILE)  # results journaled with it follow the shipped file
     assert spec.settings == f.settings
-    for kw in ({"params": {"tau_acc": 1.0}}, {"models": "somewhere"}):
-        with pytest.raises(ValueError, match="pretrained model the package ships"):
-            FilterSpec(LEARNED_VQF, **kw)
+    with pytest.raises(ValueError, match="pretrained model the package ships"):
+        FilterSpec(LEARNED_VQF, params={"tau_acc": 1.0})
+    with pytest.raises(ValueError, match="takes a portable model file"):  # a model directory is vqf_toggling's
+        FilterSpec(LEARNED_VQF, models="somewhere")
+
+
+def test_the_learned_vqf_runs_a_portable_file(tmp_path):
+    """``--models FILE.npz`` with learned_vqf: that file's settings and models, its identity its content."""
+    import shutil
+    copy = shutil.copy(PRETRAINED_FILE, tmp_path / "mine.npz")
+    spec = FilterSpec(LEARNED_VQF, models=str(copy))
+    assert spec.identity() == file_sha256(copy) and spec.as_params() == {"models": str(copy)}
+    assert filter_spec(LEARNED_VQF, spec.as_params()) == spec  # how a sweep's workers rebuild it
+    assert spec.build(100.0).settings == spec.settings
+    with pytest.raises(FileNotFoundError, match="no such model file"):
+        FilterSpec(LEARNED_VQF, models=str(tmp_path / "missing.npz"))
 
 
 def test_classic_specs_validate_without_a_rate():

@@ -24,13 +24,14 @@ from togglecf.toggling.load import load_toggling_filter, model_dir_digest
 from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, load_pretrained, pretrained_settings
 
 __all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "LEARNED_VQF", "REFERENCE_VQF", "TRAINED", "FILTER_NAMES",
-           "filter_spec", "ReferenceVQF", "ReferenceVQFSettings"]
+           "filter_spec", "is_portable_file", "ReferenceVQF", "ReferenceVQFSettings"]
 
 #: CLI name of the trained toggling filter (``--filter toggling --models DIR``)
 TOGGLING = "toggling"
 #: CLI name of the VQF core with learned time constants (``--filter vqf_toggling --models DIR``)
 VQF_TOGGLING = "vqf_toggling"
-#: CLI name of the pretrained learned VQF the package ships (``togglecf.LearnedVQF``; no --models needed)
+#: CLI name of the pretrained learned VQF the package ships (``togglecf.LearnedVQF``; no --models needed, or
+#: ``--models FILE.npz``: another portable model, e.g. from ``togglecf train --from-pretrained``)
 LEARNED_VQF = "learned_vqf"
 #: CLI name of the reference VQF (the ``vqf`` package at its defaults; the ``vqf`` extra)
 REFERENCE_VQF = "vqf"
@@ -102,7 +103,7 @@ class ReferenceVQF:
 class FilterSpec:
     """What to build: ``name`` (one of ``FILTER_NAMES``), ``params`` (settings overrides of a
     classic filter, physical units as in its ``Settings``), ``models`` (model directory of the
-    toggling filter), ``use_mag`` (9D, else 6D)."""
+    trained filters; for ``learned_vqf`` a portable model file, None: the shipped one), ``use_mag`` (9D, else 6D)."""
 
     name: str
     params: dict = field(default_factory=dict)
@@ -118,10 +119,16 @@ class FilterSpec:
             check_extra("vqf", what=_VQF_WHAT)  # not installed: one line naming the extra
             return
         if self.name == LEARNED_VQF:
-            if self.params or self.models is not None:
+            if self.params:
                 raise ValueError(f"the {LEARNED_VQF} filter is the pretrained model the package ships: it takes no "
-                                 f"--param and no --models (a model directory runs with --filter {VQF_TOGGLING})")
-            load_pretrained()  # none shipped: refused with what to do
+                                 "--param")
+            if self.models is not None:  # a portable model file instead of the shipped one
+                if not is_portable_file(self.models):
+                    raise ValueError(f"--filter {LEARNED_VQF} --models takes a portable model file (.npz, from "
+                                     f"`togglecf train --from-pretrained`), not {self.models} (a model directory runs "
+                                     f"with --filter {VQF_TOGGLING})")
+                object.__setattr__(self, "models", str(Path(self.models).resolve()))
+            pretrained_settings(self.use_mag, self.models)  # none shipped, a bad file, no settings of this mode: refused
             return
         if self.name in TRAINED:
             if self.params:
@@ -150,7 +157,7 @@ class FilterSpec:
         if self.name == REFERENCE_VQF:
             return ReferenceVQFSettings(version("vqf"), dict(vqf_package.VQF(0.01).params))
         if self.name == LEARNED_VQF:
-            return pretrained_settings(self.use_mag)
+            return pretrained_settings(self.use_mag, self.models)
         if self.name in TRAINED:
             return load_gains(self.models, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name].Settings(**self.params)
@@ -160,7 +167,7 @@ class FilterSpec:
         if self.name == REFERENCE_VQF:
             return ReferenceVQF(fs, use_mag=self.use_mag)
         if self.name == LEARNED_VQF:
-            return LearnedVQF(fs, use_mag=self.use_mag)
+            return LearnedVQF(fs, use_mag=self.use_mag, model=self.models)
         if self.name in TRAINED:
             return load_toggling_filter(self.models, fs, use_mag=self.use_mag, kind=self.name)
         return FILTERS[self.name](fs, use_mag=self.use_mag, **self.params)
@@ -172,19 +179,26 @@ class FilterSpec:
         if self.name == REFERENCE_VQF:
             return f"vqf {version('vqf')}"
         if self.name == LEARNED_VQF:
-            return file_sha256(PRETRAINED_FILE)
+            return file_sha256(self.models or PRETRAINED_FILE)
         return model_dir_digest(self.models) if self.name in TRAINED else None
 
     def as_params(self) -> dict:
         """The parameter dict of sweeps and journals (``{"models": DIR}`` for the toggling filter)."""
+        if self.name == LEARNED_VQF:
+            return {"models": self.models} if self.models else {}
         return {"models": self.models} if self.name in TRAINED else dict(self.params)
+
+
+def is_portable_file(path) -> bool:
+    """``path`` names a portable model file (``learn.portable``: ``.npz``), not a model directory."""
+    return str(path).lower().endswith(".npz")
 
 
 def filter_spec(name: str, params: dict | None = None, use_mag: bool = True) -> FilterSpec:
     """A spec from a sweep's parameter dict: ``{"models": DIR}`` for the toggling filter, settings
     overrides for the others."""
     params = dict(params or {})
-    if name in TRAINED:
+    if name in TRAINED or name == LEARNED_VQF:
         models = params.pop("models", None)
         return FilterSpec(name, params, models=models, use_mag=use_mag)
     return FilterSpec(name, params, use_mag=use_mag)

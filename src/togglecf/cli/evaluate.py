@@ -2,6 +2,7 @@
 the ``data`` extra), resumable sweeps on the local or a Dask backend (``togglecf.run.sweep``)."""
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -22,7 +23,7 @@ from togglecf.run.sweep import ResultStore, format_failures, grid_search, journa
 from togglecf.toggling.load import trained_files_among, training_trials_among
 from togglecf.toggling.pretrained import load_pretrained
 
-__all__ = ["cmd_evaluate", "cmd_tune"]
+__all__ = ["cmd_evaluate", "cmd_tune", "settings_json"]
 
 
 def _params(specs) -> dict:
@@ -87,6 +88,19 @@ def _meta(args, index, names, **extra):
             "created_unix": time.time(), **extra}
 
 
+def settings_json(settings) -> dict:
+    """results.json's ``settings``: the settings a filter ran with as a JSON object, ``{"kind": <settings
+    class>, "fields": {name: value}}`` (tuples as lists, numpy numbers as numbers), not a Python repr."""
+    def plain(v):
+        if isinstance(v, dict):
+            return {str(k): plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple, np.ndarray)):
+            return [plain(x) for x in v]
+        return v.item() if isinstance(v, np.generic) else v
+    return {"kind": type(settings).__name__,
+            "fields": {f.name: plain(getattr(settings, f.name)) for f in dataclasses.fields(settings)}}
+
+
 def _data_dir_meta(index):
     """``data_dir`` of results.json: the directory, or the list of them for several."""
     root = index.root
@@ -119,11 +133,11 @@ def _evaluated_specs(args) -> list:
 def _warn_if_trained_on(spec, index, names) -> None:
     """A learned filter scored on trials its models were trained on: one warning line."""
     files = {n: index.available[n] for n in names}
-    if spec.models:
+    if spec.name == LEARNED_VQF:  # the shipped model, or a portable file (--models)
+        _warn_in_sample(trained_files_among(load_pretrained(spec.models).metadata.get("data_files", {}), files),
+                        spec.models or "the pretrained learned VQF", names)
+    elif spec.models:
         _warn_in_sample(training_trials_among(spec.models, files), spec.models, names)
-    elif spec.name == LEARNED_VQF:
-        _warn_in_sample(trained_files_among(load_pretrained().metadata.get("data_files", {}), files),
-                        "the pretrained learned VQF", names)
 
 
 def _report_one(args, spec, sweep, index, names) -> int:
@@ -139,7 +153,7 @@ def _report_one(args, spec, sweep, index, names) -> int:
                   getattr(index, "datasets", ()))
     if args.out:
         _write(args.out, per_trial, per_group, _meta(args, index, names, params=spec.as_params(),
-                                                      settings=repr(settings), failed_trials=sweep.failed,
+                                                      settings=settings_json(settings), failed_trials=sweep.failed,
                                                       invalid_samples=sweep.invalid,
                                                       max_invalid_fraction=MAX_INVALID_FRACTION))
     return _report_failures(sweep.failed, [], index)
@@ -157,7 +171,7 @@ def _report_several(args, specs, sweeps, index, names) -> int:
         rows[spec.name] = _summary_row(per_trial, per_group)
         if args.out:
             _write(Path(args.out) / spec.name, per_trial, per_group, _meta(
-                args, index, names, filter=spec.name, params=spec.as_params(), settings=str(spec.settings),
+                args, index, names, filter=spec.name, params=spec.as_params(), settings=settings_json(spec.settings),
                 failed_trials=sweep.failed, invalid_samples=sweep.invalid, max_invalid_fraction=MAX_INVALID_FRACTION))
     _report_invalid(sweeps[0].invalid, index)  # the same samples for every filter
     if rows:

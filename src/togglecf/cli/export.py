@@ -27,6 +27,7 @@ from togglecf.embedded.forest_export import (
 )
 from togglecf.embedded.toolchain import RISCV_GCC, link_riscv
 from togglecf.learn.models import load_bundle
+from togglecf.registry import is_portable_file
 from togglecf.run.config import load_config
 from togglecf.run.prune import (
     DEFAULT_EXPORT_POINT,
@@ -39,6 +40,7 @@ from togglecf.run.prune import (
     write_sweep_report,
 )
 from togglecf.run.train import run_training
+from togglecf.toggling.pretrained import PRETRAINED_FILE
 
 __all__ = ["add_export_parser", "cmd_export", "train_within_budget"]
 
@@ -101,7 +103,7 @@ def _export_filter(args, riscv: bool, choice) -> tuple[dict, bool]:
     of ``--max-bytes`` (``choice``) holds for the trees it ships."""
     filter_dir = Path(args.out) / "filter"
     ok = True
-    fs = float(load_bundle(args.models).metadata["sampling_rate"])
+    fs = None if is_portable_file(args.models) else float(load_bundle(args.models).metadata["sampling_rate"])
     mode = "6D" if args.six_d else "9D"
     if args.filter == "vqf_toggling":
         rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d)
@@ -134,7 +136,32 @@ def _export_filter(args, riscv: bool, choice) -> tuple[dict, bool]:
     return rep, ok
 
 
+def _export_portable(args) -> int:
+    """A portable model file (the pretrained learned VQF by default): its learned VQF in C (OUT/filter).
+    The file holds the compiled forest, not the XGBoost models the TL2cgen / array exports and their
+    equivalence check start from, so those are not written."""
+    if args.filter != "vqf_toggling":
+        raise ValueError(f"--models {args.models}: a portable model file is a learned VQF: export it with "
+                         "--filter vqf_toggling (the toggling CF needs a `togglecf train` model directory)")
+    if args.max_bytes is not None:
+        raise ValueError("--max-bytes retrains pruned models from a `togglecf train` model directory: give "
+                         "--models DIR (a portable model file has no training setup to retrain)")
+    riscv = not args.no_riscv and shutil.which(RISCV_GCC) is not None
+    print(f"exporting the learned VQF of {args.models} (the C filter; no TL2cgen/array trees: the file holds "
+          "the compiled forest, not the XGBoost models)", file=sys.stderr)
+    rep, ok = _export_filter(args, riscv, None)
+    atomic_write_json(Path(args.out) / "export_report.json", {"source": str(args.models), "filter": rep})
+    return 0 if ok else 1
+
+
 def cmd_export(args) -> int:
+    if args.models is None:
+        if args.filter != "vqf_toggling":
+            raise ValueError("--models DIR is required for --filter toggling (a `togglecf train` model directory); "
+                             "without it, --filter vqf_toggling exports the pretrained learned VQF")
+        args.models = str(PRETRAINED_FILE)
+    if is_portable_file(args.models):
+        return _export_portable(args)
     choice = None
     if args.max_bytes is not None:
         args.models, choice = train_within_budget(args)

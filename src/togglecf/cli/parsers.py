@@ -115,8 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
         FILTER_CHOICES)
     sp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="setting of the --filter, repeatable (default: the filter's documented defaults)")
-    sp.add_argument("--models", metavar="DIR", help="toggling / vqf_toggling: a `togglecf train` model directory "
-                    "(models + learned gains)")
+    sp.add_argument("--models", metavar="DIR|FILE", help="toggling / vqf_toggling: a `togglecf train` model "
+                    "directory (models + learned gains); learned_vqf: a portable model FILE.npz (from `togglecf train "
+                    "--from-pretrained`) instead of the shipped one (default: none)")
     sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer (heading offset removed)")
     sp.add_argument("--out", metavar="DIR", help="write per_trial.csv, per_group.csv and results.json here "
                     "(--filters: those of each filter in DIR/<filter>/, the table in DIR/summary.csv)")
@@ -192,6 +193,11 @@ def add_train_parser(subparsers):
     sp.add_argument("--trials", metavar="LIST", help=f"{SELECTION_HELP} (default: [run] trials of the config)")
     sp.add_argument("--out", metavar="DIR", help="model directory (default: models/<run.name>)")
     sp.add_argument("--no-cv", dest="cv", action="store_false", help="skip cross-validation (final fit only)")
+    sp.add_argument("--from-pretrained", nargs="?", const="", default=None, metavar="FILE",
+                    help="keep the pretrained learned VQF's models (or those of the portable model FILE) and "
+                    "re-learn only its settings (9D and 6D, [gains.vqf] of the config) on the selected trials: "
+                    "minutes; writes OUT/learned_vqf.npz (default OUT: models/<run.name>-retuned), which "
+                    "--filter learned_vqf --models FILE runs (default: off, train everything)")
     add_backend_args(sp)
     sp.add_argument("--distributed-fit", action="store_true", default=None,
                     help="with --backend dask: train the final models with xgboost.dask on the workers "
@@ -214,9 +220,13 @@ def add_plot_parser(subparsers):
     psub = p.add_subparsers(dest="plot_kind", required=True)
 
     def common(sp):
-        sp.add_argument("--trial", required=True, help="one trial number or name, e.g. 05")
-        sp.add_argument("--data", metavar="DIR", help="BROAD directory (default: as `togglecf evaluate`)")
-        sp.add_argument("--models", metavar="DIR", help="model directory for the toggling filter")
+        sp.add_argument("--trial", required=True, help="one trial number or name, e.g. 05; with several --data, "
+                        "<dir name>/<trial> (e.g. tyrex_nexus5/Jakob_Nexus5_Dist_AR) when the name alone matches "
+                        "trials of several directories")
+        sp.add_argument("--data", metavar="DIR", action="append", default=None, help=DATA_HELP)
+        sp.add_argument("--models", metavar="DIR|FILE", help="model directory for the toggling filter, or a "
+                        "portable model FILE.npz for learned_vqf (from `togglecf train --from-pretrained`; default: "
+                        "the shipped model)")
         sp.add_argument("--6d", dest="six_d", action="store_true", help="ignore the magnetometer")
         sp.add_argument("--start", type=float, default=0.0, help="start time [s]")
         sp.add_argument("--end", type=float, default=None, help="end time [s] (default: trial end)")
@@ -259,7 +269,9 @@ def add_stream_parser(subparsers):
     sp.add_argument("--baud", type=int, default=115200)
     sp.add_argument("--filter", default="learned_vqf", choices=FILTER_CHOICES, metavar="NAME",
                     help="one of %(choices)s (learned_vqf: the pretrained learned VQF)")
-    sp.add_argument("--models", metavar="DIR", help="model directory for --filter toggling / vqf_toggling")
+    sp.add_argument("--models", metavar="DIR|FILE", help="model directory for --filter toggling / vqf_toggling; "
+                    "a portable model FILE.npz for --filter learned_vqf (from `togglecf train --from-pretrained`; "
+                    "none: the shipped model)")
     sp.add_argument("--units", default="gyr=rad/s,acc=m/s2,mag=uT",
                     help="input units, e.g. gyr=dps,acc=g,mag=uT (gyr: rad/s|dps; acc: m/s2|g|mg; "
                     "mag: uT|nT|G|mG); converted to rad/s, m/s², µT")
@@ -299,7 +311,10 @@ def add_export_parser(subparsers):
     """``togglecf export``: register on the CLI's subparsers (sets ``func``)."""
     sp = subparsers.add_parser("export", help="export a model directory as C code (TL2cgen or compact arrays), "
                                "checked against the Python models, with object sizes")
-    sp.add_argument("--models", required=True, metavar="DIR", help="a `togglecf train` model directory")
+    sp.add_argument("--models", metavar="DIR|FILE", help="a `togglecf train` model directory, or with --filter "
+                    "vqf_toggling a portable model FILE.npz (from `togglecf train --from-pretrained`); default: "
+                    "with --filter vqf_toggling the pretrained learned VQF the package ships (the C filter alone: "
+                    "its trees are already compiled), else required")
     sp.add_argument("--out", required=True, metavar="DIR", help="output directory, e.g. build/embedded/NAME")
     sp.add_argument("--format", choices=("tl2cgen", "array", "both"), default="both")
     sp.add_argument("--quantize", action="store_true", help="TL2cgen: quantized thresholds (integer compares)")

@@ -11,8 +11,9 @@ import numpy as np
 
 from togglecf.cli.filter_list import filter_names, filter_specs
 from togglecf.cli.parsers import add_plot_parser
+from togglecf.cli.common import data_dirs
 from togglecf.data.broad import open_index
-from togglecf.registry import TOGGLING, TRAINED, FilterSpec
+from togglecf.registry import LEARNED_VQF, TOGGLING, TRAINED, FilterSpec, is_portable_file
 from togglecf.report.plots import animate_3d, animation_path, plot_3d_frames, plot_error, plot_euler
 
 __all__ = ["add_plot_parser", "cmd_plot_euler", "cmd_plot_error", "cmd_plot_3d"]
@@ -20,10 +21,12 @@ __all__ = ["add_plot_parser", "cmd_plot_euler", "cmd_plot_error", "cmd_plot_3d"]
 
 def _load_trial(args):
     matplotlib.use("Agg")  # the commands only write files
-    index = open_index(args.data)
+    index = open_index(data_dirs(args))  # one --data directory or several, as evaluate
     names = index.select(args.trial)
     if len(names) != 1:
-        raise ValueError(f"--trial {args.trial!r} matches {len(names)} trials; give one")
+        shown = f" ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})" if names else ""
+        raise ValueError(f"--trial {args.trial!r} matches {len(names)} trials{shown}; give one"
+                         + (" as <dir name>/<trial>" if len(names) > 1 else ""))
     return index.load(names[0])
 
 
@@ -34,7 +37,7 @@ def _estimate(trial, spec: FilterSpec):
 def _estimates(args, trial) -> dict:
     """name -> quaternions of every filter of ``--filters`` (``--models`` adds toggling)."""
     names = filter_names(args.filters)
-    if args.models and TOGGLING not in names:
+    if args.models and not is_portable_file(args.models) and TOGGLING not in names:
         names.append(TOGGLING)
     return {s.name: _estimate(trial, s) for s in filter_specs(names, args.models, use_mag=not args.six_d)}
 
@@ -57,7 +60,8 @@ def cmd_plot_error(args):
 
 def cmd_plot_3d(args):
     trial = _load_trial(args)
-    spec = FilterSpec(args.filter, models=args.models if args.filter in TRAINED else None, use_mag=not args.six_d)
+    spec = FilterSpec(args.filter, models=args.models if args.filter in (*TRAINED, LEARNED_VQF) else None,
+                      use_mag=not args.six_d)
     q = _estimate(trial, spec)
     t1 = args.end if args.end is not None else trial.duration
     out = Path(args.out)

@@ -8,7 +8,7 @@ import sys
 from togglecf.cli.parsers import add_stream_parser
 from togglecf.core.extras import check_extra
 from togglecf.live.stream import OUTPUT_HEADER, StreamConfig, StreamProcessor, file_chunks, serial_chunks
-from togglecf.registry import TRAINED, FilterSpec
+from togglecf.registry import LEARNED_VQF, TRAINED, FilterSpec
 
 __all__ = ["add_stream_parser", "cmd_stream"]
 
@@ -20,7 +20,8 @@ def cmd_stream(args):
         check_extra("stream", what="togglecf stream --port")
     cfg = StreamConfig(fs=args.fs, time_unit=args.time_unit, units=args.units, use_mag=not args.six_d,
                        rate=args.rate, max_gap=args.max_gap, precision=args.precision, unit_check_s=args.unit_check)
-    spec = FilterSpec(args.filter, models=args.models if args.filter in TRAINED else None, use_mag=not args.six_d)
+    spec = FilterSpec(args.filter, models=args.models if args.filter in (*TRAINED, LEARNED_VQF) else None,
+                      use_mag=not args.six_d)
     filt = spec.build(args.fs)
     proc = StreamProcessor(filt, cfg)
     print(OUTPUT_HEADER, flush=True)

@@ -157,7 +157,8 @@ def _stack(out_dir: Path) -> dict:
 def export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag: bool = True, *, sizes: bool = True,
                           max_fs: float = learned.DEFAULT_MAX_FS) -> dict:
     """Write the learned VQF filter of ``model_dir`` (a ``togglecf train`` directory whose
-    ``gains.json`` has ``vqf_9d`` / ``vqf_6d``) into ``out_dir``, rate-free: the C takes its rate
+    ``gains.json`` has ``vqf_9d`` / ``vqf_6d``, or a portable model file: the pretrained model's
+    ``learned_vqf.npz``, ``learned.load_portable_export``) into ``out_dir``, rate-free: the C takes its rate
     at init (``tcf_vqft_init(&f, fs)``, any rate up to ``max_fs`` [Hz], ``TCF_MAX_FS``, for which
     the feature ring is sized). ``fs`` [Hz]: only the default rate of the host harness and the
     size probes (``TCF_DEFAULT_FS``; None: the models' ``sampling_rate``). Returns the report
@@ -173,10 +174,14 @@ def export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag: bool = True, *, 
     ``library``: the Arduino / PlatformIO library written beside (``out_dir/arduino/TogglecfLearnedVQF``,
     ``library.write_library``; its sketch set to ``fs``)."""
     model_dir, out_dir = Path(model_dir), Path(out_dir)
-    ex = learned.load_model_export(model_dir, fs, use_mag, kind="vqf_toggling", max_fs=max_fs)
+    if model_dir.is_file():  # a portable model file (learn.portable), e.g. the pretrained model
+        ex = learned.load_portable_export(model_dir, fs, use_mag, max_fs=max_fs)
+    else:
+        ex = learned.load_model_export(model_dir, fs, use_mag, kind="vqf_toggling", max_fs=max_fs)
     filt, s, L, k = ex.filt, ex.filt.settings, ex.window_max, len(ex.classes)
     comment, common = learned.learned_config(ex, model_dir, use_mag, "filter: VQF core with learned time constants "
-                                             f"(gains.json, {'vqf_9d' if use_mag else 'vqf_6d'})")
+                                             f"({'model file' if model_dir.is_file() else 'gains.json'}, "
+                                             f"{'vqf_9d' if use_mag else 'vqf_6d'})")
     rate = (f"/* the rate is set at init, tcf_vqft_init(&f, fs); the host harness's and the size probes' default */\n"
             f"#define TCF_DEFAULT_FS {c_float(ex.fs)}   /* Hz */\n")
     config = framework.config_header("tcf_config.h", "cvqf_toggling.export_c_vqf_toggling", comment,

@@ -22,13 +22,19 @@ from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length
 from togglecf.filters.prediction import PredictionLayout
 from togglecf.toggling.gains import GAINS_FILE, mode_name
 from togglecf.toggling.load import load_toggling_filter
+from togglecf.toggling.pretrained import LearnedVQF, load_pretrained
 
-__all__ = ["FEATURE_TEMPLATES", "FEATURE_HEADERS", "DEFAULT_MAX_FS", "ModelExport", "load_model_export", "model_export",
-           "check_model_dir", "check_rate", "check_feature_layout", "fallback_config",
+__all__ = ["FEATURE_TEMPLATES", "FEATURE_HEADERS", "DEFAULT_MAX_FS", "PORTABLE_DEFAULT_FS", "ModelExport",
+           "load_model_export", "load_portable_export", "model_export", "check_model_dir", "check_rate",
+           "check_feature_layout", "fallback_config",
            "features_config", "write_forest", "learned_config"]
 
 #: Hz, the largest rate a rate-free export runs at by default (``TCF_MAX_FS``: the feature ring is sized for it)
 DEFAULT_MAX_FS = 400.0
+
+#: Hz, the default rate of the harness (``TCF_DEFAULT_FS``) of a portable model's export: the file names no one
+#: rate (the pretrained model was trained at several), and the export is rate-free anyway
+PORTABLE_DEFAULT_FS = 100.0
 
 #: the models in the loop (streaming features, range check, tree walk) and the prediction row they hold as
 #: both filters read it (``tcf_prediction.h``, the C twin of ``filters.prediction``), shipped with every learned filter
@@ -163,10 +169,12 @@ class ModelExport:
     window_max: int = 0
 
 
-def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None) -> ModelExport:
+def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None, model_hash: str | None = None,
+                 gains_hash: str | None = None) -> ModelExport:
     """The ``ModelExport`` of ``filt`` (loaded from ``model_dir`` at rate ``fs`` [Hz]; ``meta`` its
     ``metadata.json``), the feature ring sized for ``max_fs`` [Hz] (default ``fs``); refuses a
-    rate at which the gyro would never be integrated, or ``fs > max_fs``."""
+    rate at which the gyro would never be integrated, or ``fs > max_fs``. ``model_hash``,
+    ``gains_hash``: the hashes recorded (default: of ``meta``'s model files and of ``gains.json``)."""
     s = filt.settings
     max_fs = fs if max_fs is None else check_rate(max_fs, "max_fs")
     if not 1.0 / fs <= s.max_dt:
@@ -184,10 +192,10 @@ def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None) -> M
     L, hop = window_length(fs, fset.window_s), hop_length(fs, fset.hop_s)
     if (L, hop) != (filt.streaming_features.L, filt.hop):
         raise AssertionError("window/hop of the Python filter and the export disagree")
-    return ModelExport(filt, classes, forest, dropped, L, hop,
-                       model_hash=hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode())
-                       .hexdigest(),
-                       gains_hash=file_sha256(model_dir / GAINS_FILE),
+    if model_hash is None:
+        model_hash = hashlib.sha256(json.dumps(meta.get("model_files", {}), sort_keys=True).encode()).hexdigest()
+    return ModelExport(filt, classes, forest, dropped, L, hop, model_hash=model_hash,
+                       gains_hash=gains_hash if gains_hash is not None else file_sha256(model_dir / GAINS_FILE),
                        schema_hash=meta.get("feature_schema", {}).get("hash", "?"), fs=fs, max_fs=max_fs,
                        window_max=window_length(max_fs, fset.window_s))
 
@@ -222,6 +230,23 @@ def load_model_export(model_dir, fs, use_mag: bool, kind: str, max_fs: float = D
     return model_export(model_dir, meta, fs, filt, max_fs)
 
 
+def load_portable_export(path, fs, use_mag: bool, max_fs: float) -> ModelExport:
+    """``load_model_export`` of a portable model file (``learn.portable``: the pretrained learned VQF the
+    package ships, or ``togglecf train --from-pretrained``'s): its learned VQF (``LearnedVQF``) in 9D or
+    6D, rate-free (``max_fs`` [Hz]); ``fs`` only the harness's default rate (None: ``PORTABLE_DEFAULT_FS``).
+    The file holds models and settings: its sha256 is recorded as both hashes."""
+    path = Path(path)
+    pm = load_pretrained(path)  # a bad file: refused with what it is
+    mode = mode_name("vqf_toggling", use_mag)
+    if mode not in pm.gains:
+        raise ValueError(f"{path}: no {mode} settings in this model file (has {', '.join(sorted(pm.gains))})")
+    fs = check_rate(fs if fs is not None else PORTABLE_DEFAULT_FS)
+    check_feature_layout()
+    digest = file_sha256(path)
+    return model_export(path, {"feature_schema": {"hash": pm.models.schema_hash}}, fs,
+                        LearnedVQF(fs, use_mag=use_mag, model=path), max_fs, model_hash=digest, gains_hash=digest)
+
+
 def learned_config(ex: ModelExport, model_dir: Path, use_mag: bool, filter_line: str) -> tuple[list, str]:
     """The part of ``tcf_config.h`` every learned filter has: the comment lines (model directory,
     mode, ``filter_line``, classes, the hashes, the trees left out) and the defines
@@ -229,12 +254,13 @@ def learned_config(ex: ModelExport, model_dir: Path, use_mag: bool, filter_line:
     ``TCF_CLASS_NAMES_INIT``. Returns (comment lines, defines) for ``framework.config_header``."""
     model_dir = model_dir.resolve()
     filt = ex.filt
-    comment = [f"model directory: {model_dir.name}   mode: {'9D (acc + gyr + mag)' if use_mag else '6D (acc + gyr)'}",
+    what = "model file" if model_dir.is_file() else "model directory"
+    comment = [f"{what}: {model_dir.name}   mode: {'9D (acc + gyr + mag)' if use_mag else '6D (acc + gyr)'}",
                filter_line,
                f"classes (order of the class probabilities): {', '.join(ex.classes)}",
                f"feature schema sha256: {ex.schema_hash}",
-               f"model files sha256 (metadata.json model_files): {ex.model_hash}",
-               f"gains.json sha256: {ex.gains_hash}",
+               f"model sha256 ({'the model file' if model_dir.is_file() else 'metadata.json model_files'}): {ex.model_hash}",
+               f"gains sha256 ({'the model file' if model_dir.is_file() else 'gains.json'}): {ex.gains_hash}",
                f"trees not exported (outputs the filter never uses): {', '.join(ex.dropped) or 'none'}"]
     model_id = c_string(model_dir.name + ':' + ex.model_hash[:12] + ':' + ex.gains_hash[:12])
     names = "{" + ", ".join(c_string(c) for c in ex.classes) + "}"

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import logging
+import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +21,29 @@ import numpy as np
 from togglecf import __version__
 from togglecf.core.io import atomic_write_text, file_sha256
 from togglecf.core.provenance import source_revision
-from togglecf.data.broad import DatasetIndex
+from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.registry import VQF_TOGGLING
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
-from togglecf.learn.portable import load_portable
-from togglecf.toggling.pretrained import portable_from_model_dir
+from togglecf.learn.portable import load_portable, save_portable
+from togglecf.toggling.gains import (
+    MODES,
+    VQFGainSearch,
+    learn_modes,
+    objective_value,
+    settings_from_dict,
+    trial_datasets,
+    trial_total_rmse,
+)
+from togglecf.toggling.pretrained import PRETRAINED_FILE, VQF_MODES, load_pretrained, portable_from_model_dir
 
-__all__ = ["NO_HARM_MARGIN", "train_pretrained", "write_model_card", "no_harm_check", "model_card", "dataset_notice"]
+__all__ = ["NO_HARM_MARGIN", "train_pretrained", "write_model_card", "no_harm_check", "model_card", "dataset_notice",
+           "retune_pretrained", "RETUNED_FILE"]
+
+log = logging.getLogger(__name__)
+
+#: the file ``togglecf train --from-pretrained`` writes in its ``--out`` directory
+RETUNED_FILE = "learned_vqf.npz"
 
 #: the pretrained recipe may be at most this much worse (relative) than VQF on a dataset it never saw
 NO_HARM_MARGIN = 0.02
@@ -182,3 +200,88 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
         lines += [f"**{d['name']}**:", "", *[f"> {line}" for line in d["notice"]], ""]
     lines += ["The package's code is MIT. The model was computed from the data above; keep these notices with it."]
     return "\n".join(lines) + "\n"
+
+
+def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=None, verbose: bool = True) -> dict:
+    """``togglecf train --from-pretrained``: re-learn only the learned VQF's settings (9D and 6D, the
+    modes the pretrained model has) on the selected trials, keeping the pretrained forest as it is.
+
+    The pretrained models (``model``: a portable file, default the one the package ships) are not
+    retrained: they predict on the user's trials, which they never saw, so their predictions are
+    already out-of-sample and no cross-validation is needed (``togglecf train`` cross-validates only to
+    get such predictions for its own training trials). On them the settings are learned by the same
+    coordinate descent as ``togglecf train`` (``gains.learn_modes``, the config's ``[gains.vqf]``
+    grids, objective and sweeps; ``[run] nthread`` processes), which starts at the VQF core's own
+    settings. The descent is greedy, so it may end above the pretrained settings on these trials;
+    each mode keeps whichever of the two scores lower on the descent's objective (``kept``), so on
+    these trials the result is never worse than the pretrained model, nor than the core.
+
+    Writes ``out/learned_vqf.npz`` (``learn.portable``, the format of the shipped model; ``out``
+    default ``models/<run.name>-retuned``) with metadata naming the model it was re-tuned from and
+    the trials. Returns ``{"path", "modes": {mode: objectives, kept, history}, "timing_s"}``."""
+    t_start = time.perf_counter()
+    cfg = load_config(config)
+    run = cfg["run"]
+    index = open_index(data_dir if data_dir else (run["data"] or None))
+    spec = trials if trials is not None else (None if run["trials"] in ("all", "", None) else run["trials"])
+    names = index.select(spec)
+    if not names:
+        raise ValueError("togglecf train --from-pretrained: no trial selected")
+    source_path = Path(model) if model is not None else PRETRAINED_FILE
+    pm = load_pretrained(source_path)
+    modes = [m for m in VQF_MODES if m in pm.gains]
+    out_dir = Path(out) if out else Path("models") / f"{run['name']}-retuned"
+    say = log.info if verbose else (lambda msg: None)
+    say(f"togglecf train --from-pretrained: {len(names)} trials, the models of {source_path.name} kept; "
+        f"re-learning {', '.join(modes)} -> {out_dir / RETUNED_FILE}")
+    loaded = [index.load(n) for n in names]
+    t0 = time.perf_counter()
+    preds = [pm.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in loaded]
+    timing = {"predictions_s": time.perf_counter() - t0}
+    search = VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
+    source = "the pretrained models' out-of-sample"
+    gains, report = dict(pm.gains), {}
+    t0 = time.perf_counter()
+    for mode, settings, hist, _ in learn_modes(loaded, preds, pm.models, modes, vqf_search=search,
+                                               jobs=int(run["nthread"]), log=say, source=source):
+        report[mode] = _keep_better(mode, settings, hist, pm, loaded, preds, search)
+        gains[mode] = asdict(settings) if report[mode]["kept"] == "search" else pm.gains[mode]
+        say(f"{mode}: kept the {report[mode]['kept']}'s settings ({search.objective}: search "
+            f"{report[mode]['objective_search']:.4f}, pretrained {report[mode]['objective_pretrained']:.4f}, "
+            f"core {report[mode]['objective_core']:.4f})")
+    timing["gains_s"] = time.perf_counter() - t0
+    data_files = {n: {"file": Path(index.available[n]).name, "sha256": file_sha256(index.available[n])} for n in names}
+    metadata = {
+        "recipe": "togglecf train --from-pretrained: the pretrained models kept, the learned VQF's settings "
+                  "re-learned on the trials below by the gain search of togglecf train ([gains.vqf])",
+        "togglecf": __version__,
+        "retuned_from": {"file": source_path.name, "sha256": file_sha256(source_path),
+                         "recipe": pm.metadata.get("recipe")},
+        "retune_trials": names,
+        "data_dir": [str(r) for r in index.root] if isinstance(index.root, (tuple, list)) else str(index.root),
+        "predictions": source, "objective": search.objective, "search": report,
+        "classes": list(pm.models.class_names),
+        # the forest's training files and the re-tuning's: evaluate flags scores on either as in-sample
+        "data_files": {**pm.metadata.get("data_files", {}), **{f"retuned:{n}": v for n, v in data_files.items()}},
+        "settings": {m: gains[m] for m in modes},
+    }
+    path = save_portable(out_dir / RETUNED_FILE, pm.models, gains, metadata)
+    timing["total_s"] = time.perf_counter() - t_start
+    say(f"wrote {path} in {timing['total_s']:.1f} s (predictions {timing['predictions_s']:.1f} s, "
+        f"gains {timing['gains_s']:.1f} s)")
+    return {"path": path, "modes": report, "timing_s": timing, "trials": names}
+
+
+def _keep_better(mode, settings, hist, pm, trials, preds, search) -> dict:
+    """The descent's result against the pretrained settings of ``mode`` on the descent's objective
+    (per-trial ratios to the core's RMSE, the descent's start): which one is kept and both values."""
+    use_mag = MODES[mode][1]
+    pre = settings_from_dict(type(settings), pm.gains[mode])
+    start = search.start(pm.models.class_names)
+    rmse_core = trial_total_rmse(start, trials, preds, use_mag)
+    obj_pre = objective_value(search.objective, trial_total_rmse(pre, trials, preds, use_mag), rmse_core,
+                              trial_datasets(trials))
+    obj_search = float(hist[-1][2])
+    return {"objective_core": float(hist[0][2]), "objective_search": obj_search, "objective_pretrained": obj_pre,
+            "kept": "search" if obj_search <= obj_pre else "pretrained",
+            "history": [[p, v, float(o)] for p, v, o in hist]}

@@ -39,7 +39,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "learn_modes", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -507,24 +507,37 @@ def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d
     over-confident (the regressors look near-perfect on their own training data), so gains learned
     on them trust the models too much: the study measured it (see README)."""
     models = CompiledModels.from_bundle(load_bundle(model_dir))
-    log = log or logger.info  # progress: the togglecf logger (stderr) unless a caller passes its own
     source = "out-of-fold (CV models that never saw the trial)" if predictions is not None else "in-sample"
     preds = predictions if predictions is not None else [models.predict_samples(t.gyr, t.acc, t.mag, t.fs)
                                                           for t in trials]
     out = {}
+    for mode, settings, hist, mode_search in learn_modes(trials, preds, models, modes, search, vqf_search, jobs, log,
+                                                         source):
+        save_gains(model_dir, settings, trials, hist, use_mag=MODES[mode][1], predictions=source, search=mode_search)
+        out[mode] = settings
+    return out
+
+
+def learn_modes(trials, predictions, models: CompiledModels, modes, search: GainSearch | None = None,
+                vqf_search: VQFGainSearch | None = None, jobs: int = 1, log=None, source: str = ""):
+    """The coordinate descent (``learn_gains``) of each gain mode of ``modes`` (``MODES``) on
+    ``trials`` with the per-trial ``predictions`` of ``models``: yields ``(mode, settings, history,
+    search)`` per mode as it finishes (``search``: the ``GainSearch`` of the toggling CF's modes or
+    the ``VQFGainSearch`` of the learned VQF's), each logged in one line (``source``: where the
+    predictions come from). ``togglecf train`` and the re-tuning of the pretrained model both learn
+    their gains here."""
+    log = log or logger.info  # progress: the togglecf logger (stderr) unless a caller passes its own
     for mode in modes:
         if mode not in MODES:
             raise ValueError(f"gain mode must be one of {list(MODES)}, got {mode!r}")
         kind, use_mag = MODES[mode]
         t0 = time.perf_counter()
-        mode_search = search if kind == "toggling" else (vqf_search or VQFGainSearch())
-        settings, hist = learn_gains(trials, preds, models.class_names, models.static_state, use_mag=use_mag,
+        mode_search = (search or GainSearch()) if kind == "toggling" else (vqf_search or VQFGainSearch())
+        settings, hist = learn_gains(trials, predictions, models.class_names, models.static_state, use_mag=use_mag,
                                      search=mode_search, jobs=jobs)
-        save_gains(model_dir, settings, trials, hist, use_mag=use_mag, predictions=source, search=mode_search)
         log(f"gains {mode} ({source} predictions): {mode_search.objective} on the training trials "
             f"{hist[0][2]:.4f} -> {hist[-1][2]:.4f} in {time.perf_counter() - t0:.0f} s: {describe_gains(settings)}")
-        out[mode] = settings
-    return out
+        yield mode, settings, hist, mode_search
 
 
 def describe_gains(settings) -> str:

@@ -78,7 +78,7 @@ def _complete_margins(forest, X):
     arrays = cf.arrays()
     out = np.empty((len(X), forest.n_outputs))
     for i in range(len(X)):
-        predict_margin_row_complete(X[i], *arrays, out[i])
+        predict_margin_row_complete(X[i], arrays, out[i])
     return out
 
 

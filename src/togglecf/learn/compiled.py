@@ -35,10 +35,12 @@ def inloop_forest(classifier, regressors) -> FlatForest:
     return FlatForest.concatenate(forests)
 
 
-def inloop_forest_bytes(classifier, regressors) -> bytes:
-    """The content of ``INLOOP_FILE`` for fitted models (the same models, the same bytes)."""
+def inloop_forest_bytes(classifier, regressors, forest: FlatForest | None = None) -> bytes:
+    """The content of ``INLOOP_FILE`` for fitted models (the same models, the same bytes); ``forest``: their
+    ``inloop_forest`` when already flattened."""
+    forest = forest if forest is not None else inloop_forest(classifier, regressors)
     doc = {"format": INLOOP_FORMAT, "feature_schema_hash": classifier.schema_.hash,
-           "classes": list(classifier.class_names_), "forest": inloop_forest(classifier, regressors).to_dict()}
+           "classes": list(classifier.class_names_), "forest": forest.to_dict()}
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
@@ -75,6 +77,15 @@ class CompiledModels:
         settings, ranges = _settings_and_ranges(bundle.schema, bundle.metadata, where)
         return cls(inloop_forest(bundle.classifier, bundle.regressors), bundle.classifier.class_names_, settings,
                    bundle.schema.hash, *ranges)
+
+    @classmethod
+    def from_fitted(cls, classifier, regressors, metadata: dict, forest: FlatForest | None = None) -> "CompiledModels":
+        """Fitted models (``learn.models``) in memory with the ``metadata`` ``learn.models.save_bundle``
+        writes for them (its ``feature_ranges``): the models ``stored`` reads back from their directory,
+        array for array. ``forest``: their ``inloop_forest`` when already flattened (XGBoost otherwise)."""
+        settings, ranges = _settings_and_ranges(classifier.schema_, metadata, "fitted models")
+        forest = forest if forest is not None else inloop_forest(classifier, regressors)
+        return cls(forest, classifier.class_names_, settings, classifier.schema_.hash, *ranges)
 
     @classmethod
     def stored(cls, model_dir) -> "CompiledModels | None":

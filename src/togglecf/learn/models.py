@@ -201,9 +201,10 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def save_bundle(out_dir, classifier: MotionClassifier, regressors: dict, metadata: dict) -> dict:
+def save_bundle(out_dir, classifier: MotionClassifier, regressors: dict, metadata: dict, forest=None) -> dict:
     """Write the model files and ``metadata.json`` (which records each file's sha256) atomically;
-    ``metadata.json`` is written last so a complete bundle is one whose metadata exists."""
+    ``metadata.json`` is written last so a complete bundle is one whose metadata exists. ``forest``: the
+    models' ``learn.compiled.inloop_forest`` when already flattened (else flattened here)."""
     out = Path(out_dir)
     files = dict(classifier.model_bytes())
     for reg in regressors.values():
@@ -212,7 +213,7 @@ def save_bundle(out_dir, classifier: MotionClassifier, regressors: dict, metadat
     for name, data in files.items():
         atomic_write_bytes(out / name, data)
         hashes[name] = _sha256(data)
-    inloop = inloop_forest_bytes(classifier, regressors)  # the filter's trees, read later without XGBoost
+    inloop = inloop_forest_bytes(classifier, regressors, forest)  # the filter's trees, read later without XGBoost
     atomic_write_bytes(out / INLOOP_FILE, inloop)
     meta = {"bundle_format": BUNDLE_FORMAT, **metadata, "feature_schema": classifier.schema_.to_dict(),
             "classes": list(classifier.class_names_), "model_files": hashes,

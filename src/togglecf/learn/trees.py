@@ -23,14 +23,15 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from togglecf.core.extras import require
 
-__all__ = ["FlatForest", "CompleteForest", "COMPLETE_MAX_DEPTH", "predict_margin_row",
-           "predict_margin_row_complete", "sigmoid", "softmax"]
+__all__ = ["FlatForest", "FlatForestArrays", "CompleteForest", "CompleteForestArrays", "COMPLETE_MAX_DEPTH",
+           "predict_margin_row", "predict_margin_row_complete", "sigmoid", "softmax"]
 
 _SUPPORTED = {"binary:logistic": "sigmoid", "multi:softprob": "softmax", "multi:softmax": "softmax",
               "reg:squarederror": "identity", "reg:pseudohubererror": "identity", "reg:absoluteerror": "identity"}
@@ -38,6 +39,21 @@ _SUPPORTED = {"binary:logistic": "sigmoid", "multi:softprob": "softmax", "multi:
 _ARRAY_DTYPES = {"feature": np.int32, "threshold": np.float32, "left": np.int32, "right": np.int32,
                  "default_left": np.bool_, "value": np.float32, "roots": np.int32, "tree_group": np.int32,
                  "base_margin": np.float64}
+
+
+class FlatForestArrays(NamedTuple):
+    """The arrays of a ``FlatForest`` as one record (compiled to a struct) for ``predict_margin_row``
+    (``FlatForest.arrays()``; ``n_nodes`` nodes, ``n_trees`` trees, ``n_outputs`` outputs)."""
+
+    feature: np.ndarray  # (n_nodes,) int32 split feature, -1 for a leaf
+    threshold: np.ndarray  # (n_nodes,) float32 split value (go left when x < threshold)
+    left: np.ndarray  # (n_nodes,) int32 absolute child indices (-1 for leaves)
+    right: np.ndarray
+    default_left: np.ndarray  # (n_nodes,) bool, branch for a missing (NaN) feature
+    value: np.ndarray  # (n_nodes,) float32 leaf value
+    roots: np.ndarray  # (n_trees,) int32 root node of each tree
+    tree_group: np.ndarray  # (n_trees,) int32 output each tree adds to
+    base_margin: np.ndarray  # (n_outputs,) float64 margin before any tree
 
 
 @dataclass
@@ -251,10 +267,10 @@ class FlatForest:
             raise ValueError("forest arrays of inconsistent lengths")
         return forest
 
-    def arrays(self):
-        """The tuple of arrays ``predict_margin_row`` takes after the feature row."""
-        return (self.feature, self.threshold, self.left, self.right, self.default_left, self.value, self.roots,
-                self.tree_group, self.base_margin)
+    def arrays(self) -> FlatForestArrays:
+        """The forest as the record ``predict_margin_row`` walks."""
+        return FlatForestArrays(self.feature, self.threshold, self.left, self.right, self.default_left, self.value,
+                                self.roots, self.tree_group, self.base_margin)
 
     def predict_margin(self, X, base=None) -> np.ndarray:
         """Raw margins ``(n, n_outputs)`` for features ``X (n, n_features)`` (NaN = missing)."""
@@ -262,10 +278,10 @@ class FlatForest:
         if X.ndim != 2 or X.shape[1] != self.n_features:
             raise ValueError(f"features: expected shape (n, {self.n_features}), got {X.shape}")
         out = np.empty((X.shape[0], self.n_outputs))
-        arrs = list(self.arrays())
+        arrays = self.arrays()
         if base is not None:
-            arrs[-1] = np.asarray(base, np.float64)
-        _predict_matrix(X, *arrs, out)
+            arrays = arrays._replace(base_margin=np.asarray(base, np.float64))
+        _predict_matrix(X, arrays, out)
         return out
 
     def predict(self, X) -> np.ndarray:
@@ -283,6 +299,21 @@ COMPLETE_MAX_DEPTH = 12
 #: trees walked side by side by ``predict_margin_row_complete`` (independent chains of loads keep the
 #: CPU busy while each waits for its memory; the blocks of this many trees share one padded depth)
 _BLOCK = 8
+
+
+class CompleteForestArrays(NamedTuple):
+    """The arrays of a ``CompleteForest`` as one record (compiled to a struct) for
+    ``predict_margin_row_complete`` (``CompleteForest.arrays()``; ``F`` features, ``n_trees`` trees)."""
+
+    row: np.ndarray  # (2 F + 2,) float32 scratch: the doubled feature row (overwritten by every walk)
+    feature: np.ndarray  # (n_inner,) int32 index into the doubled row
+    threshold: np.ndarray  # (n_inner,) float32
+    value: np.ndarray  # (n_leaf,) float32 leaf values
+    inner_offset: np.ndarray  # (n_trees,) int32 first inner node of each tree
+    leaf_offset: np.ndarray  # (n_trees,) int32 first leaf of each tree
+    depth: np.ndarray  # (n_trees,) int32 padded depth of each tree
+    tree_group: np.ndarray  # (n_trees,) int32 output each tree adds to
+    base_margin: np.ndarray  # (n_outputs,) float64 margin before any tree
 
 
 @dataclass
@@ -307,10 +338,11 @@ class CompleteForest:
     base_margin: np.ndarray
     n_features: int
 
-    def arrays(self):
-        """The tuple ``predict_margin_row_complete`` takes after the feature row (with a fresh row buffer)."""
-        return (np.zeros(2 * self.n_features + 2, np.float32), self.feature, self.threshold, self.value,
-                self.inner_offset, self.leaf_offset, self.depth, self.tree_group, self.base_margin)
+    def arrays(self) -> CompleteForestArrays:
+        """The forest as the record ``predict_margin_row_complete`` walks (with a fresh row buffer)."""
+        return CompleteForestArrays(np.zeros(2 * self.n_features + 2, np.float32), self.feature, self.threshold,
+                                    self.value, self.inner_offset, self.leaf_offset, self.depth, self.tree_group,
+                                    self.base_margin)
 
 
 def sigmoid(m):
@@ -324,8 +356,12 @@ def softmax(m):
 
 
 @njit(cache=True)
-def predict_margin_row(x, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin, out):
-    """Margins of one feature row ``x`` (float32 or float64; NaN = missing) into ``out``."""
+def predict_margin_row(x, forest, out):
+    """Margins of one feature row ``x (n_features,)`` (float32 or float64; NaN = missing) into
+    ``out (n_outputs,)`` float64, walking ``forest`` (a ``FlatForestArrays``)."""
+    feature, threshold, left, right = forest.feature, forest.threshold, forest.left, forest.right
+    default_left, value, roots, tree_group = forest.default_left, forest.value, forest.roots, forest.tree_group
+    base_margin = forest.base_margin
     for k in range(out.shape[0]):
         out[k] = base_margin[k]
     for t in range(roots.shape[0]):
@@ -348,12 +384,15 @@ def _level(xs, feature, threshold, base, i):
 
 
 @njit(cache=True)
-def predict_margin_row_complete(x, xs, feature, threshold, value, inner_offset, leaf_offset, depth, tree_group,
-                                base_margin, out):
-    """``predict_margin_row`` on a ``CompleteForest`` (``CompleteForest.arrays()``; ``xs`` a
-    float32 buffer of ``2 F + 2``): the same margins bit for bit. ``x`` as float32, NaN as −inf
-    at ``j`` and +inf at ``F + 1 + j`` (``x < threshold`` then follows the default branch, and
-    ±inf inputs compare as before); eight trees walked side by side; leaves added in tree order."""
+def predict_margin_row_complete(x, forest, out):
+    """``predict_margin_row`` on a ``CompleteForest`` (``forest`` a ``CompleteForestArrays``, from
+    ``CompleteForest.arrays()``; its ``row`` the float32 scratch of ``2 F + 2``): the same margins
+    ``out (n_outputs,)`` bit for bit. ``x (F,)`` as float32, NaN as −inf at ``j`` and +inf at
+    ``F + 1 + j`` (``x < threshold`` then follows the default branch, and ±inf inputs compare as
+    before); eight trees walked side by side; leaves added in tree order."""
+    xs, feature, threshold, value = forest.row, forest.feature, forest.threshold, forest.value
+    inner_offset, leaf_offset, depth = forest.inner_offset, forest.leaf_offset, forest.depth
+    tree_group, base_margin = forest.tree_group, forest.base_margin
     F = x.shape[0]
     for j in range(F):
         v = np.float32(x[j])
@@ -403,7 +442,7 @@ def predict_margin_row_complete(x, xs, feature, threshold, value, inner_offset, 
 
 
 @njit(cache=True)
-def _predict_matrix(X, feature, threshold, left, right, default_left, value, roots, tree_group, base_margin, out):
+def _predict_matrix(X, forest, out):
+    """``predict_margin_row`` of each row of ``X (n, n_features)`` into ``out (n, n_outputs)``."""
     for i in range(X.shape[0]):
-        predict_margin_row(X[i], feature, threshold, left, right, default_left, value, roots, tree_group,
-                           base_margin, out[i])
+        predict_margin_row(X[i], forest, out[i])

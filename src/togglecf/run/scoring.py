@@ -14,7 +14,8 @@ from togglecf.filters import FilterOutput, dt_from_timestamps
 from togglecf.metrics.broad import trial_errors
 from togglecf.registry import FilterSpec
 
-__all__ = ["TrialResult", "run_filter", "score_trial", "score_trials", "warm_up", "grid_points", "parse_grid"]
+__all__ = ["TrialResult", "run_built", "run_filter", "score_trial", "score_trials", "warm_up", "grid_points",
+           "parse_grid"]
 
 
 @dataclass
@@ -57,9 +58,23 @@ def run_filter(trial: Trial, spec: FilterSpec) -> tuple[FilterOutput, float]:
     per sample)``."""
     f = spec.build(trial.fs)
     warm_up(spec, trial.fs)
+    return _timed_run(f, trial, spec.use_mag)
+
+
+def run_built(trial: Trial, build, use_mag: bool = True) -> tuple[FilterOutput, float]:
+    """``run_filter`` for a filter no ``FilterSpec`` names (e.g. trained models held in memory): ``build(fs)``
+    makes it (rate [Hz]); a first one runs a few samples so that timing excludes JIT compilation."""
+    f = build(trial.fs)
+    z = np.tile([[0.0, 0.0, 9.81]], (4, 1))
+    build(_COMPILE_FS).update_batch(z * 0.0, z, z + [20.0, 0.0, 0.0] if use_mag else None)
+    return _timed_run(f, trial, use_mag)
+
+
+def _timed_run(f, trial: Trial, use_mag: bool) -> tuple[FilterOutput, float]:
+    """The filter ``f`` over the whole ``trial`` (time-stamp Δt when it has them) and µs per sample."""
     dt = None if trial.time is None else dt_from_timestamps(trial.time)
     t0 = time.perf_counter()
-    out = f.update_batch(trial.gyr, trial.acc, trial.mag if spec.use_mag else None, dt=dt)
+    out = f.update_batch(trial.gyr, trial.acc, trial.mag if use_mag else None, dt=dt)
     return out, 1e6 * (time.perf_counter() - t0) / trial.n_samples
 
 

@@ -41,11 +41,11 @@ from togglecf.parallel.backend import LocalBackend, data_location
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import write_report
 from togglecf.run.config import GAIN_KEYS, load_config
-from togglecf.run.scoring import grid_points, parse_grid, run_filter, score_trial, score_trials
+from togglecf.run.scoring import grid_points, parse_grid, run_built, run_filter, score_trial
 from togglecf.run.sweep import evaluate_trials
-from togglecf.run.train import run_training
-from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, load_gains
-from togglecf.toggling.load import load_compiled_models
+from togglecf.run.train import TrainedModels, run_training
+from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, mode_name
+from togglecf.toggling.load import IN_LOOP
 
 __all__ = ["StudyConfig", "load_study_config", "run_study"]
 
@@ -329,51 +329,65 @@ def _run_fold(job: _FoldJob, k: int, test: list) -> dict:
     loaded = _trials(job.root, job.names)
     train = [n for n in job.names if n not in test]
     log.info(f"fold {k + 1}: train on {len(train)} trials, test on {', '.join(test)}")
-    model_dir = job.out / "folds" / f"fold{k}" / "models"
-    res = run_training(job.train_cfg, data_dir=job.root, trials=",".join(train), out=model_dir, cv=True,
-                       verbose=False)  # inner CV, models, then the gains on the CV's out-of-fold predictions
-    models = load_compiled_models(model_dir)
-    gains9 = load_gains(model_dir, use_mag=True)
-    info = {"fold": k, "train": train, "test": test, **_fold_gains_info(res, model_dir, gains9)}
+    # inner CV, models, then the gains on the CV's out-of-fold predictions: used as trained (in memory), the
+    # directory written for the report's readers and the later steps (run.transfer reads each fold's models)
+    res = run_training(job.train_cfg, data_dir=job.root, trials=",".join(train), out=_fold_dir(job, k, "models"),
+                       cv=True, verbose=False)
+    trained = res["trained"]
+    models, gains9 = trained.models, trained.gains["9d"].settings
+    info = {"fold": k, "train": train, "test": test, **_fold_gains_info(res)}
     log.info(f"  fold {k + 1}: models {info['train_s']:.0f} s, gains {info['gains_s']:.0f} s: {info['gains']}; "
              f"learned VQF: {info['vqf_gains']}")
     out = {"rows": [], "series": {n: {} for n in test}, "timelines": {}, "info": info}
     for spec in LEARNED_ROWS:
         if spec.needs is None or spec.needs in job.cfg.ablations:
-            _score_learned(spec, [loaded[n] for n in test], model_dir, k, models.class_names, out)
+            _score_learned(spec, [loaded[n] for n in test], trained, k, out)
     # test trials: the fold's final models; training trials: the inner CV's out-of-fold predictions
     preds = {n: models.predict_samples(loaded[n].gyr, loaded[n].acc, loaded[n].mag, loaded[n].fs) for n in test}
     preds.update(res["oof_predictions"])
     t0 = time.perf_counter()
-    out["rows"] += _ablations(job, _Fold(k, train, test, loaded, preds, models, gains9, info))
+    out["rows"] += _ablations(job, _Fold(k, train, test, loaded, preds, models, gains9, info, trained.gains))
     info["ablations_s"] = time.perf_counter() - t0
     return out
 
 
-def _fold_gains_info(res: dict, model_dir: Path, gains9) -> dict:
+def _fold_dir(job: _FoldJob, k: int, name: str) -> Path:
+    """Where fold ``k`` writes its model directory ``name`` (``models``, ``models_ransac_off``)."""
+    return job.out / "folds" / f"fold{k}" / name
+
+
+def _fold_gains_info(res: dict) -> dict:
     """Timing and learned settings of a fold's training (``info`` of the fold in ``results.json``)."""
-    hist = json.loads((model_dir / "gains.json").read_text())["9d"]["history"]
+    gains = res["trained"].gains
+    gains9, hist = gains["9d"]
     t = res["timing"]
     return {"train_s": t["final_fit_s"] + t["dataset_s"] + t.get("cv_s", 0.0), "gains_s": t.get("gains_s", 0.0),
             "gains": {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
                       "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                       "noise_weight_acc": gains9.noise_weight_acc, "noise_weight_mag": gains9.noise_weight_mag,
-                      "confidence_floor": gains9.confidence_floor, "train_objective": hist[-1][2]},
-            "vqf_gains": describe_gains(load_gains(model_dir, kind=VQF_TOGGLING))}
+                      "confidence_floor": gains9.confidence_floor, "train_objective": float(hist[-1][2])},
+            "vqf_gains": describe_gains(gains[mode_name(VQF_TOGGLING, True)].settings)}
 
 
-def _score_learned(spec: LearnedRow, trials, model_dir, k: int, class_names, out: dict) -> None:
-    """The rows of ``spec`` on a fold's test ``trials`` (models compiled into the loop), into ``out``."""
-    by_name = {t.name: t for t in trials}
-    for r, o in score_trials(trials, FilterSpec(spec.filter, models=model_dir, use_mag=spec.use_mag)):
-        out["rows"].append(_row(r.trial, spec.label, k, r.errors, r.us_per_sample))
+def _score_learned(spec: LearnedRow, trials, trained: TrainedModels, k: int, out: dict) -> None:
+    """The rows of ``spec`` on a fold's test ``trials`` (the fold's models, in memory, compiled into the
+    loop with the learned settings of the row's mode), into ``out``."""
+    settings = trained.gains[mode_name(spec.filter, spec.use_mag)].settings
+    class_names = trained.models.class_names
+
+    def build(fs):
+        return IN_LOOP[spec.filter](fs, settings, models=trained.models, use_mag=spec.use_mag)
+    for t in trials:
+        o, us = run_built(t, build, spec.use_mag)
+        out["rows"].append(_row(t.name, spec.label, k, trial_errors(o.quat, t.opt_quat, t.movement,
+                                                                     six_d=not spec.use_mag), us))
         if not spec.plotted:
             continue
-        out["series"][r.trial][spec.label] = _errors_series(o.quat, by_name[r.trial])
+        out["series"][t.name][spec.label] = _errors_series(o.quat, t)
         if spec.filter == TOGGLING:
-            out["timelines"][r.trial] = {"alpha_acc": o.diagnostics["alpha_acc"],
-                                         "p": np.column_stack([o.diagnostics[f"p_{s}"] for s in class_names]),
-                                         "states": class_names}
+            out["timelines"][t.name] = {"alpha_acc": o.diagnostics["alpha_acc"],
+                                        "p": np.column_stack([o.diagnostics[f"p_{s}"] for s in class_names]),
+                                        "states": class_names}
 
 
 def _baseline_rows(grids: dict, train, test, k: int, info: dict, suffix: str = "") -> list:
@@ -437,6 +451,7 @@ class _Fold:
     models: object  # CompiledModels
     gains9: object  # the fold's learned 9D toggling settings
     info: dict
+    gains: dict  # mode -> the fold's toggling.gains.LearnedGains (run.train.TrainedModels.gains)
 
 
 def _no_noise(layout: PredictionLayout):
@@ -473,7 +488,7 @@ def _ablations(job: _FoldJob, fold: _Fold) -> list:
                   for n in fold.train + fold.test}
         rows += _vqf_variant(job, fold, "vqf_oracle", oracle)
     if "6d" in cfg.ablations:  # gains learned in 6D by `togglecf train`
-        s6 = load_gains(job.out / "folds" / f"fold{fold.k}" / "models", use_mag=False)
+        s6 = fold.gains["6d"].settings
         rows += _toggling_rows(fold, "toggling_6d", s6, fold.preds, use_mag=False)
     if "ransac_off" in cfg.ablations:
         rows += _ransac_off(job, fold)
@@ -524,9 +539,8 @@ def _ransac_off(job: _FoldJob, fold: _Fold) -> list:
     cfg_off["labels"]["ransac"] = False
     cfg_off["gains"]["modes"] = ["9d"]
     cfg_off["run"]["cv_folds"] = job.cfg.inner_folds
-    model_dir = job.out / "folds" / f"fold{fold.k}" / "models_ransac_off"
-    run_training(cfg_off, data_dir=job.root, trials=",".join(fold.train), out=model_dir, cv=True, verbose=False)
-    m_off = load_compiled_models(model_dir)
+    off = run_training(cfg_off, data_dir=job.root, trials=",".join(fold.train),
+                       out=_fold_dir(job, fold.k, "models_ransac_off"), cv=True, verbose=False)["trained"]
     t = fold.loaded
-    p_off = {n: m_off.predict_samples(t[n].gyr, t[n].acc, t[n].mag, t[n].fs) for n in fold.test}
-    return _toggling_rows(fold, "ransac_off", load_gains(model_dir), p_off)
+    p_off = {n: off.models.predict_samples(t[n].gyr, t[n].acc, t[n].mag, t[n].fs) for n in fold.test}
+    return _toggling_rows(fold, "ransac_off", off.gains["9d"].settings, p_off)

@@ -12,6 +12,7 @@ import logging
 import platform
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import scipy
@@ -21,7 +22,7 @@ from togglecf.core.extras import deferred
 from togglecf.core.io import atomic_write_text
 from togglecf.data.broad import open_index, short_trial_name
 from togglecf.features.windows import FeatureSettings, feature_schema
-from togglecf.learn.compiled import hold_predictions
+from togglecf.learn.compiled import CompiledModels, hold_predictions
 from togglecf.learn.cv import cross_validate, format_cv_table
 from togglecf.learn.dask_fit import fit_models_dask
 from togglecf.learn.dataset import WindowData, build_dataset, dataset_settings
@@ -36,7 +37,7 @@ from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_ga
 sklearn = deferred("sklearn", extra="train", what="togglecf training (togglecf.run.train)")
 xgboost = deferred("xgboost", extra="train", what="togglecf training (togglecf.run.train)")
 
-__all__ = ["run_training"]
+__all__ = ["TrainedModels", "run_training"]
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +47,17 @@ def _versions() -> dict:
             "scipy": scipy.__version__, "xgboost": xgboost.__version__, "scikit-learn": sklearn.__version__}
 
 
+class TrainedModels(NamedTuple):
+    """What a training wrote to its model directory, in memory (as that directory reads back)."""
+
+    models: CompiledModels  # the filter's flat forest, its feature settings and training ranges
+    gains: dict  # mode (``gains.MODES``) -> ``gains.LearnedGains`` of the modes learned (empty: none)
+
+
 def run_training(config=None, data_dir=None, trials=None, out=None, cv: bool = True, verbose: bool = True,
                  dataset: WindowData | None = None, backend=None) -> dict:
-    """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out`` and ``timing``.
+    """The whole pipeline. Returns a dict with ``metadata``, ``cv``, ``out``, ``timing`` and ``trained``
+    (a ``TrainedModels``: the models and gains written to ``out``, for callers that go on with them).
 
     ``dataset``: a ``build_dataset`` result that holds (at least) the selected trials, built with
     this config's label and feature settings, reused instead of rebuilt (sweeps over model
@@ -92,20 +101,31 @@ def _training_data(index, names, label_settings, feature_settings, dataset, back
     return dataset.subset(names)
 
 
-def _learn_gains(cfg: dict, out_dir: Path, trials: list, predictions, say) -> None:
+def _learn_gains(cfg: dict, out_dir: Path, trials: list, predictions, say, models: CompiledModels) -> dict:
     """The gains of every mode of ``cfg["gains"]`` on the training ``trials`` (their out-of-fold
-    ``predictions``, else the final models' own), into ``out_dir/gains.json``."""
+    ``predictions``, else the final ``models``' own), into ``out_dir/gains.json``; mode -> ``LearnedGains``."""
     gcfg = cfg["gains"]
     search = GainSearch.from_dict({k: v for k, v in gcfg.items() if k not in GAIN_KEYS})
-    learn_and_save_gains(out_dir, trials, search, tuple(gcfg.get("modes", ("9d", "6d"))),
-                         jobs=int(cfg["run"]["nthread"]), log=say, predictions=predictions,
-                         vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})))
+    return learn_and_save_gains(out_dir, trials, search, tuple(gcfg.get("modes", ("9d", "6d"))),
+                                jobs=int(cfg["run"]["nthread"]), log=say, predictions=predictions,
+                                vqf_search=VQFGainSearch.from_dict(gcfg.get("vqf", {})), models=models)
 
 
 def _data_dir_meta(index):
     """``data_dir`` of the metadata: the directory, or the list of them (trial names ``<dataset>/<trial>``)."""
     root = index.root
     return [str(r) for r in root] if isinstance(root, (tuple, list)) else str(root)
+
+
+def _write_models(out_dir: Path, clf, regs: dict, metadata: dict, schema, cv, class_names) -> CompiledModels:
+    """The fitted models, their importances and the CV table (``cv``: ``None`` without CV) into ``out_dir``;
+    returns the models as the directory reads back (``CompiledModels.stored``), flattened once."""
+    models = CompiledModels.from_fitted(clf, regs, metadata)
+    save_bundle(out_dir, clf, regs, metadata, forest=models.forest)
+    atomic_write_text(out_dir / "feature_importances.csv", importances_csv(clf, regs, schema))
+    if cv is not None:
+        atomic_write_text(out_dir / "cv_table.txt", format_cv_table(cv, class_names) + "\n")
+    return models
 
 
 def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) -> dict:
@@ -173,20 +193,19 @@ def _run_training(config, data_dir, trials, out, cv, verbose, dataset, backend) 
         "per_trial": {n: {k: v for k, v in p.items() if k not in ("file", "sha256")} for n, p in data.per_trial.items()},
         "config": cfg, "cv": result.get("cv"), "timing": timing, "versions": _versions(),
     }
-    save_bundle(out_dir, clf, regs, metadata)
-    atomic_write_text(out_dir / "feature_importances.csv", importances_csv(clf, regs, schema))
-    if cv:
-        atomic_write_text(out_dir / "cv_table.txt", format_cv_table(result["cv"], class_names) + "\n")
+    models = _write_models(out_dir, clf, regs, metadata, schema, result.get("cv"), class_names)
+    gains = {}
     if cfg["gains"].get("learn", True):  # the toggling filter's gains, on the same training trials
         t0 = time.perf_counter()
-        _learn_gains(cfg, out_dir, [index.load(n) for n in names],
-                     [result["oof_predictions"][n] for n in names] if oof is not None else None, say)
+        gains = _learn_gains(cfg, out_dir, [index.load(n) for n in names],
+                             [result["oof_predictions"][n] for n in names] if oof is not None else None, say, models)
         timing["gains_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     say(f"wrote {out_dir}/ in {timing['total_s']:.1f} s total (dataset {timing['dataset_s']:.1f} s, "
         f"CV {timing.get('cv_s', 0.0):.1f} s, final fit {timing['final_fit_s']:.1f} s)")
     result["metadata"] = metadata
     result["data"] = data
+    result["trained"] = TrainedModels(models, gains)
     return result
 
 

@@ -27,6 +27,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -39,7 +40,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "learn_modes", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "learn_modes", "LearnedGains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -497,16 +498,25 @@ def check_gains_format(doc: dict, path) -> None:
                      f"with `togglecf train` (it writes gains.json format {GAINS_FORMAT})")
 
 
+class LearnedGains(NamedTuple):
+    """The gains of one mode as ``learn_and_save_gains`` learned and stored them."""
+
+    settings: object  # TogglingSettings or VQFTogglingSettings (time constants in s), as ``load_gains`` reads them
+    history: list  # the descent's (parameter, value, objective) steps, as ``gains.json`` "history" holds them
+
+
 def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d"), jobs: int = 1, log=None,
-                         predictions=None, vqf_search: VQFGainSearch | None = None) -> dict:
+                         predictions=None, vqf_search: VQFGainSearch | None = None,
+                         models: CompiledModels | None = None) -> dict:
     """After ``togglecf train``: learn the gains of each mode on the training ``trials`` and store
-    them in ``model_dir/gains.json``. Returns mode -> settings.
+    them in ``model_dir/gains.json``. Returns mode -> ``LearnedGains``. ``models``: the directory's
+    models when the caller holds them (else read back from ``model_dir``).
 
     ``predictions``: per-trial ``(N, S + 6)`` *out-of-fold* predictions (from the CV models, which
     never saw that trial). Without them the final models' in-sample predictions are used; they are
     over-confident (the regressors look near-perfect on their own training data), so gains learned
     on them trust the models too much: the study measured it (see README)."""
-    models = CompiledModels.from_bundle(load_bundle(model_dir))
+    models = models if models is not None else CompiledModels.from_bundle(load_bundle(model_dir))
     source = "out-of-fold (CV models that never saw the trial)" if predictions is not None else "in-sample"
     preds = predictions if predictions is not None else [models.predict_samples(t.gyr, t.acc, t.mag, t.fs)
                                                           for t in trials]
@@ -514,7 +524,7 @@ def learn_and_save_gains(model_dir, trials, search: GainSearch, modes=("9d", "6d
     for mode, settings, hist, mode_search in learn_modes(trials, preds, models, modes, search, vqf_search, jobs, log,
                                                          source):
         save_gains(model_dir, settings, trials, hist, use_mag=MODES[mode][1], predictions=source, search=mode_search)
-        out[mode] = settings
+        out[mode] = LearnedGains(settings, hist)
     return out
 
 

@@ -28,9 +28,10 @@ from togglecf.filters.toggling import TogglingFilter, prediction_step_of
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.ranges import window_out_of_range
-from togglecf.learn.trees import predict_margin_row, predict_margin_row_complete
+from togglecf.learn.trees import (CompleteForestArrays, FlatForestArrays, predict_margin_row,
+                                  predict_margin_row_complete)
 
-__all__ = ["CompleteWalk", "FeatureWindow", "FlatWalk", "HeldPrediction", "InLoopModels", "ModelArrays",
+__all__ = ["FeatureWindow", "HeldPrediction", "InLoopModels", "ModelArrays",
            "ModelTogglingFilter", "ModelVQFTogglingFilter", "Outputs", "Samples", "filter_step", "hop_predict",
            "inloop_batch", "params_by_value", "walk_forest"]
 
@@ -54,23 +55,13 @@ class FeatureWindow(NamedTuple):
     hop: int  # samples from one window end to the next
 
 
-class CompleteWalk(NamedTuple):
-    """Trees as ``learn.trees.CompleteForest.arrays()``, walked by ``predict_margin_row_complete``."""
-
-    arrays: tuple
-
-
-class FlatWalk(NamedTuple):
-    """Trees as ``learn.trees.FlatForest.arrays()``, walked by ``predict_margin_row`` (very deep trees)."""
-
-    arrays: tuple
-
-
 class ModelArrays(NamedTuple):
     """The models as the loop uses them."""
 
     layout: PredictionLayout  # of the prediction row (filters.prediction)
-    forest: tuple  # a CompleteWalk or a FlatWalk: one output per row entry (class margins, η̂_a, η̂_m)
+    # learn.trees' CompleteForestArrays (walked by predict_margin_row_complete) or FlatForestArrays (very deep
+    # trees: predict_margin_row): one output per row entry (class margins, η̂_a, η̂_m)
+    forest: tuple
     low: np.ndarray  # (N_FEATURES,) training range of each feature (learn.ranges; NaN: unbounded)
     high: np.ndarray
     max_out_of_range: float  # the largest fraction of bounded features out of range that still predicts
@@ -96,16 +87,17 @@ class Outputs(NamedTuple):
 
 def walk_forest(forest, feat, margin):
     """The trees' margins of the feature row ``feat`` into ``margin``: compiled code only, the walk
-    chosen by the type of ``forest`` (``CompleteWalk`` or ``FlatWalk``) at compile time."""
+    chosen by the type of ``forest`` (``learn.trees.CompleteForestArrays`` or ``FlatForestArrays``) at
+    compile time."""
     raise TypeError("walk_forest runs in compiled code only")
 
 
 @overload(walk_forest, inline="always")
 def _walk_forest_typed(forest, feat, margin):
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is CompleteWalk:
-        return lambda forest, feat, margin: predict_margin_row_complete(feat, *forest.arrays, margin)
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is FlatWalk:
-        return lambda forest, feat, margin: predict_margin_row(feat, *forest.arrays, margin)
+    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is CompleteForestArrays:
+        return lambda forest, feat, margin: predict_margin_row_complete(feat, forest, margin)
+    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is FlatForestArrays:
+        return lambda forest, feat, margin: predict_margin_row(feat, forest, margin)
     return None
 
 
@@ -250,9 +242,9 @@ class InLoopModels:
     def forest(self, forest):
         self._forest = forest
         try:  # the same trees laid out to walk faster (identical margins); very deep trees keep the plain walk
-            walk = CompleteWalk(forest.complete().arrays())
+            walk = forest.complete().arrays()
         except ValueError:
-            walk = FlatWalk(forest.arrays())
+            walk = forest.arrays()
         m = self.models
         self._model_arrays = ModelArrays(self.layout, walk, m.feature_low, m.feature_high, m.max_out_of_range)
 

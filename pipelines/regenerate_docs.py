@@ -1,7 +1,8 @@
 """(Re)write the generated result tables of the documentation, ``docs/results/*.md``, from run outputs.
 
     python pipelines/regenerate_docs.py [--study reports/study] [--bench [--quick]] [--bench-dask]
-                                        [--sweep build/embedded/default/sweep] [--models models/default]
+                                        [--sweep build/embedded/default/sweep] [--export build/embedded/default]
+                                        [--models models/default]
                                         [--lodo reports/lodo] [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
@@ -21,9 +22,10 @@ placeholder saying how to produce it when there is no file yet):
   quick mode, where a script has one) and captures the table each prints (none of them writes a file)
   into ``bench_<name>.md``. ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
   extra) into ``bench_dask.md``.
-* ``--sweep DIR`` (default ``build/embedded/default/sweep``; read: ``sweep.csv``, ``pareto.csv``, and
-  ``../filter/filter_report.json`` of the export beside it when present): ``sweep.md`` and
-  ``embedded_sizes.md``.
+* ``--sweep DIR`` (default ``build/embedded/default/sweep``; read: ``sweep.csv``, ``pareto.csv``):
+  ``sweep.md``.
+* ``--export DIR`` (default ``build/embedded/default``, what ``pipelines/export_embedded.py`` writes;
+  read: ``filter/filter_report.json``): ``embedded_sizes.md``.
 * ``--models DIR`` (default ``models/default``; read: ``cv_table.txt``): ``train_cv.md``.
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
 * always: ``filter_defaults.md``, every filter's settings and defaults, from the code; and (with
@@ -393,13 +395,6 @@ def sweep_tables(sweep: Path, out: Path, command: str) -> None:
             + md_table(["point (trees × depth, features)", "rv32 array", "rv32 TL2cgen", "TL2cgen quantized",
                         "held-out total [°]", "Δ vs unpruned [°]", "µs/prediction"], rows))
     write(out, "sweep.md", text)
-    report = sweep.parent / "filter" / "filter_report.json"
-    if report.is_file():
-        embedded_sizes(report, out, command)
-    else:
-        placeholder(out, "embedded_sizes.md", f"An export's `{_shown(report)}`",
-                    "Run `togglecf export --models models/default --out build/embedded/default --max-bytes 32768`, "
-                    f"then `{SCRIPT} --sweep build/embedded/default/sweep`.")
 
 
 def embedded_sizes(report_path: Path, out: Path, command: str) -> None:
@@ -480,6 +475,8 @@ def main(argv=None) -> int:
     p.add_argument("--bench-dask", action="store_true", help="also run bench_dask.py (minutes)")
     p.add_argument("--sweep", default=None, metavar="DIR",
                    help="pruning sweep directory (default: build/embedded/default/sweep if present)")
+    p.add_argument("--export", default=None, metavar="DIR",
+                   help="a C filter export (default: build/embedded/default if present) -> embedded_sizes.md")
     p.add_argument("--models", default=None, metavar="DIR",
                    help="trained model directory (default: models/default if present)")
     p.add_argument("--spread", default=None, metavar="DIRS",
@@ -541,7 +538,16 @@ def main(argv=None) -> int:
         how = ("Run `togglecf prune --models models/default --out build/embedded/default/sweep` (or "
                f"`python pipelines/export_embedded.py`), then `{SCRIPT} --sweep build/embedded/default/sweep`.")
         placeholder(out, "sweep.md", "The pruning sweep `build/embedded/default/sweep/sweep.csv`", how)
-        placeholder(out, "embedded_sizes.md", "An export's `build/embedded/default/filter/filter_report.json`", how)
+
+    export = Path(args.export) if args.export else REPO / "build" / "embedded" / "default"
+    report = export / "filter" / "filter_report.json"
+    if report.is_file():
+        embedded_sizes(report, out, f"{SCRIPT} --export {_shown(export)}")
+    else:
+        if args.export:
+            p.error(f"{export}: no filter/filter_report.json (run `python pipelines/export_embedded.py --out {export}`)")
+        placeholder(out, "embedded_sizes.md", "An export's `build/embedded/default/filter/filter_report.json`",
+                    f"Run `python pipelines/export_embedded.py`, then `{SCRIPT} --export build/embedded/default`.")
 
     bench_cmd = f"{SCRIPT} --bench" + (" --quick" if args.quick else "")
     if args.bench:

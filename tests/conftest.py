@@ -170,3 +170,31 @@ noise_weight_acc = [0.0]
 noise_weight_mag = [0.0]
 sweeps = 1
 """
+
+
+# ------------------------------------------------------------------ C exports at another rate
+#: the real 100 Hz recording the C exports are run on at a rate other than the models'
+RATE_PHONE_TRIAL = "Jakob_Nexus5_NoDist_AR"
+
+
+def _resampled(t, fs_new):
+    """``t`` linearly interpolated onto a ``fs_new`` [Hz] grid (gyr, acc, mag; a test input only: C and
+    Python get the same arrays)."""
+    t_old = np.arange(t.n_samples) / t.fs
+    t_new = np.arange(0.0, t_old[-1], 1.0 / fs_new)
+    return tuple(np.column_stack([np.interp(t_new, t_old, x[:, j]) for j in range(3)]) for x in (t.gyr, t.acc, t.mag))
+
+
+@pytest.fixture(scope="module", params=[pytest.param("phone100", marks=pytest.mark.broad),
+                                        pytest.param("broad200", marks=pytest.mark.broad)])
+def other_rate(request, broad_index):
+    """A real trial at a rate other than the models' (285.714 Hz): a 100 Hz phone recording
+    (tyrex_nexus5, Nexus 5, no disturbance, AR) or BROAD trial 05 resampled to 200 Hz."""
+    if request.param == "phone100":
+        phone = broad_index.root.parent / "tyrex_nexus5"
+        if not (phone / "trials.json").is_file():
+            pytest.skip(f"no phone dataset at {phone}")
+        t = DatasetIndex.from_dir(phone).load(RATE_PHONE_TRIAL)
+        assert t.fs == pytest.approx(100.0)
+        return request.param, 100.0, t.gyr, t.acc, t.mag
+    return (request.param, 200.0, *_resampled(broad_index.load("05_undisturbed_slow_rotation_with_breaks_B"), 200.0))

@@ -28,7 +28,7 @@ low-confidence fallback included; last re-measured with feature version 3, model
   <= 7e-6, thanks to the compensated EMA of tcf_features.c; <= 1.7e-5 on the magnet trials 29 and 32).
 
 * Rate at init (issue 25): one export (default rate, the models' 285.714 Hz) run with
-  ``tcf_filter_init(&f, fs)`` at 100 Hz on the phone trial ``PHONE_TRIAL`` (tyrex_nexus5, real 100 Hz)
+  ``tcf_filter_init(&f, fs)`` at 100 Hz on the phone trial ``conftest.RATE_PHONE_TRIAL`` (tyrex_nexus5, real 100 Hz)
   and at 200 Hz on BROAD trial 05 linearly resampled to 200 Hz, against the Python filter built at
   that rate: the bounds above, unchanged (the arithmetic with C's own predictions <= 0.01°, the
   in-loop filter <= 0.05° with >= 97 % of the samples holding the same prediction, a window's
@@ -65,7 +65,6 @@ ANGLE_TOL_DEG = 0.05
 #: the filter arithmetic alone (C driven by given predictions vs TogglingFilter) [deg] (module docstring)
 ARITH_TOL_DEG = 0.01
 #: the 100 Hz phone trial of the rate test (tyrex_nexus5 beside BROAD; the learned VQF's rate test uses it too)
-PHONE_TRIAL = "Jakob_Nexus5_NoDist_AR"
 WARN_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Wdouble-promotion", "-Wshadow"]
 
 
@@ -396,29 +395,6 @@ def test_riscv_compile_and_link(exported, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ rate at init
-
-def _resampled(t, fs_new):
-    """``t`` linearly interpolated onto a ``fs_new`` [Hz] grid (gyr, acc, mag; a test input only: C and
-    Python get the same arrays)."""
-    t_old = np.arange(t.n_samples) / t.fs
-    t_new = np.arange(0.0, t_old[-1], 1.0 / fs_new)
-    return tuple(np.column_stack([np.interp(t_new, t_old, x[:, j]) for j in range(3)]) for x in (t.gyr, t.acc, t.mag))
-
-
-@pytest.fixture(scope="module", params=[pytest.param("phone100", marks=pytest.mark.broad),
-                                        pytest.param("broad200", marks=pytest.mark.broad)])
-def other_rate(request, broad_index):
-    """A real trial at a rate other than the models' (285.714 Hz): a 100 Hz phone recording
-    (tyrex_nexus5, Nexus 5, no disturbance, AR) or BROAD trial 05 resampled to 200 Hz."""
-    if request.param == "phone100":
-        phone = broad_index.root.parent / "tyrex_nexus5"
-        if not (phone / "trials.json").is_file():
-            pytest.skip(f"no phone dataset at {phone}")
-        t = DatasetIndex.from_dir(phone).load(PHONE_TRIAL)
-        assert t.fs == pytest.approx(100.0)
-        return request.param, 100.0, t.gyr, t.acc, t.mag
-    return (request.param, 200.0, *_resampled(broad_index.load("05_undisturbed_slow_rotation_with_breaks_B"), 200.0))
-
 
 @pytest.mark.parametrize("mode", ["9d", "6d"])
 def test_c_at_another_rate_matches_python(exported, model_dir, other_rate, mode):

@@ -37,7 +37,7 @@ state conversion at coefficient changes is needed or done.
 * The out-of-range fallback (``learn.ranges``): the same windows get no prediction in C and
   Python, with the model's threshold and with a threshold of 0 that makes it fire often.
 * Rate at init (issue 25): one export (default rate 285.714 Hz) run with ``tcf_vqft_init(&f, fs)``
-  at 100 Hz on the phone trial ``PHONE_TRIAL`` (tyrex_nexus5, real 100 Hz) and at 200 Hz on BROAD
+  at 100 Hz on the phone trial ``conftest.RATE_PHONE_TRIAL`` (tyrex_nexus5, real 100 Hz) and at 200 Hz on BROAD
   trial 05 linearly resampled to 200 Hz, against the Python filter built at that rate: the bounds
   of the full unseen trial above, unchanged (``ARITH_TOL["broad05"]``, ``IN_LOOP_TOL["broad05"]``).
   Measured (tiny model): 100 Hz 9D 0.0034° (0.0034° with C's predictions, 100 % the same
@@ -85,7 +85,6 @@ WARN_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Wdouble-promotion",
 #: pruned export point; the tiny test model (15 + 10 trees of depth 4 per output) is about that size
 CODE_MAX = 32 * 1024
 #: the 100 Hz phone trial of the rate test (tyrex_nexus5 beside BROAD)
-PHONE_TRIAL = "Jakob_Nexus5_NoDist_AR"
 
 
 def _vqf_settings(class_names, use_mag):
@@ -252,29 +251,6 @@ def test_fallback_fires_as_in_python(model_dir, mini_trial, mini_kind, tmp_path)
 
 
 # ------------------------------------------------------------------- rate at init, per-sample dt
-
-def _resampled(t, fs_new):
-    """``t`` linearly interpolated onto a ``fs_new`` [Hz] grid (gyr, acc, mag; a test input only: C and
-    Python get the same arrays)."""
-    t_old = np.arange(t.n_samples) / t.fs
-    t_new = np.arange(0.0, t_old[-1], 1.0 / fs_new)
-    return tuple(np.column_stack([np.interp(t_new, t_old, x[:, j]) for j in range(3)]) for x in (t.gyr, t.acc, t.mag))
-
-
-@pytest.fixture(scope="module", params=[pytest.param("phone100", marks=pytest.mark.broad),
-                                        pytest.param("broad200", marks=pytest.mark.broad)])
-def other_rate(request, broad_index):
-    """A real trial at a rate other than the models' (285.714 Hz): a 100 Hz phone recording
-    (tyrex_nexus5, Nexus 5, no disturbance, AR) or BROAD trial 05 resampled to 200 Hz."""
-    if request.param == "phone100":
-        phone = broad_index.root.parent / "tyrex_nexus5"
-        if not (phone / "trials.json").is_file():
-            pytest.skip(f"no phone dataset at {phone}")
-        t = DatasetIndex.from_dir(phone).load(PHONE_TRIAL)
-        assert t.fs == pytest.approx(100.0)
-        return request.param, 100.0, t.gyr, t.acc, t.mag
-    return (request.param, 200.0, *_resampled(broad_index.load("05_undisturbed_slow_rotation_with_breaks_B"), 200.0))
-
 
 @pytest.mark.parametrize("mode", ["9d", "6d"])
 def test_c_at_another_rate_matches_python(exported, model_dir, other_rate, mode):

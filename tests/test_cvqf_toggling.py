@@ -218,6 +218,30 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
     np.testing.assert_array_equal(dc["rest"], ref.diagnostics["rest"])
 
 
+def test_measured_backoff_law_matches_python(model_dir, mini_trial, tmp_path):
+    """The other back-off law (``mag_backoff_measured``: the predicted disturbance capped by the one
+    the magnetometer shows, TCF_VQFT_BACKOFF_MEASURED 1), which models trained before 2026-12 store:
+    C vs Python with the same predictions within the arithmetic bound, and not the default law's output
+    (σ_m 3 µT backs off on the mini cut under either law, by different amounts)."""
+    d = tmp_path / "measured"
+    shutil.copytree(model_dir, d)
+    doc = json.loads((d / "gains.json").read_text())
+    doc["vqf_9d"]["settings"]["mag_backoff_measured"] = True
+    (d / "gains.json").write_text(json.dumps(doc))
+    t = mini_trial
+    f, py = _python(d, t, True)
+    assert f.settings.mag_backoff_measured is True
+    out = tmp_path / "c"
+    rep = cv.export_c_vqf_toggling(d, out, t.fs, use_mag=True)
+    exe = cv.build_vqft_harness(out)
+    P = np.stack([py.diagnostics[k] for k in _pred_names(rep)], axis=1)
+    qc = cv.run_vqft_harness(exe, t.gyr, t.acc, t.mag, predictions=P)
+    ang = _angles_deg(qc, py.quat)
+    assert ang.max() <= ARITH_TOL["mini"], f"max {ang.max():.5f}°"
+    _, bounded = _python(model_dir, t, True)
+    assert _angles_deg(bounded.quat, py.quat).max() > 10 * ARITH_TOL["mini"]
+
+
 def test_fallback_fires_as_in_python(model_dir, mini_trial, mini_kind, tmp_path):
     """With max_out_of_range = 0 (one feature out of range is enough) the fallback fires often; C
     and Python refuse the same windows, and the filter then runs the core's own settings. Where

@@ -126,12 +126,15 @@ def test_model_card_states_data_licences_and_the_check(mini_index):
     meta = {"recipe": "r", "togglecf": "0", "seed": 1, "classes": ["rest", "rotation"], "training_trials": 3,
             "datasets": [{"name": "broad_mini", "trials": 3, "rates_hz": [285.714], "notice": notice}],
             "settings": {"vqf_9d": {"tau_acc_states": [1.0, 3.0], "tau_acc": 3.0, "confidence_floor": 0.0,
-                                    "mag_disturbance_scale": 10.0, "mag_backoff_measured": True},
+                                    "mag_disturbance_scale": 10.0, "mag_backoff_measured": False,
+                                    "mag_rejection_factor": 2.0},
                          "vqf_6d": {"tau_acc_states": [3.0, 3.0], "tau_acc": 3.0, "confidence_floor": 0.0,
-                                    "mag_disturbance_scale": 0.0, "mag_backoff_measured": True}},
+                                    "mag_disturbance_scale": 0.0, "mag_backoff_measured": False,
+                                    "mag_rejection_factor": 2.0}},
             "no_harm": no_harm_check({"broad_mini": _lodo((2.1, 2.1), (1.0, 3.0))})}
     card = model_card(meta, None, [mini_index.root], "abc")
-    assert "| broad_mini | 3 | 285.714 |" in card and "| vqf_9d | 1, 3 | 0 | 10 | True |" in card
+    assert "| broad_mini | 3 | 285.714 |" in card and "| vqf_9d | 1, 3 | 0 | 10 | at most the core's own rejection factor: the heading gain never below 1/2 of VQF's |" in card
+    assert "| vqf_6d | 3, 3 | 0 | 0 | off |" in card
     assert all(f"> {line}" in card for line in notice)
     assert "vqf_6d: every learned value equals VQF's" in card and "vqf_9d: τ_acc per state" in card
 

@@ -65,10 +65,11 @@ def test_fallback_on_nan_and_low_confidence(mini_trial):
     assert np.array_equal(o.quat, VQFCoreFilter(t.fs, s.core_settings).update_batch(t.gyr, t.acc, t.mag).quat)
 
 
-def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
-    """Step 3 on the predicted disturbance alone (``mag_backoff_measured=False``):
-    k_mag / (1 + (|η̂_m| / σ_m)²) in 9D; σ_m = 0 or 6D: the core's k_mag. The core's own
-    norm/dip rejection is switched off here so that k is the modulated gain on every sample."""
+def test_predicted_disturbance_scales_the_heading_gain_within_the_cores_rejection_factor(mini_trial):
+    """Step 3 on the predicted disturbance (``mag_backoff_measured=False``, the default):
+    k_mag / (1 + min((|η̂_m| / σ_m)², f_reject − 1)) in 9D, f_reject the core's
+    ``mag_rejection_factor``; σ_m = 0 or 6D: the core's k_mag. The core's own norm/dip rejection
+    is switched off here so that k is the modulated gain on every sample."""
     t = mini_trial
     n = t.n_samples
     layout = PredictionLayout.of(2)
@@ -76,14 +77,18 @@ def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
     pred[:, 0] = 1.0
     pred[:, layout.eta_mag] = (6.0, 0.0, 8.0)  # |η̂_m| = 10 µT
     plain = dict(states=("a", "b"), mag_dist_rejection_enabled=False)
-    s = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0, mag_backoff_measured=False)  # (10/5)² = 4: k / 5
-    on = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
+    # (10/5)² = 4: k / 5 where the core's rejection factor allows it (10), k / 2 at VQF's factor 2
+    wide = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0, mag_rejection_factor=10.0)
+    s = VQFTogglingSettings(**plain, mag_disturbance_scale=5.0)
+    assert s.mag_backoff_measured is False and s.mag_rejection_factor == 2.0
     off = VQFTogglingFilter(t.fs, VQFTogglingSettings(**plain)).update_batch(t.gyr, t.acc, t.mag, predictions=pred)
-    k_on, k_off = on.diagnostics["k_mag"], off.diagnostics["k_mag"]
+    k_off = off.diagnostics["k_mag"]
     # after the start-up phase (M5: k >= 1/N until N·Ts > τ_mag = 9 s, sample 2572 at 285.7 Hz)
     steady = (np.arange(n) * (1.0 / t.fs) > 1.2 * s.tau_mag) & (k_off > 0)
     assert steady.sum() > 500
-    np.testing.assert_allclose(k_on[steady], k_off[steady] / 5.0, rtol=1e-12)
+    for settings, divisor in ((wide, 5.0), (s, 2.0)):
+        k_on = VQFTogglingFilter(t.fs, settings).update_batch(t.gyr, t.acc, t.mag, predictions=pred).diagnostics["k_mag"]
+        np.testing.assert_allclose(k_on[steady], k_off[steady] / divisor, rtol=1e-12)
     six = VQFTogglingFilter(t.fs, s, use_mag=False).update_batch(t.gyr, t.acc, None, predictions=pred)
     six_off = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=("a", "b")), use_mag=False).update_batch(
         t.gyr, t.acc, None, predictions=pred)
@@ -91,7 +96,7 @@ def test_predicted_disturbance_scales_the_heading_gain(mini_trial):
 
 
 def test_backoff_acts_on_no_more_disturbance_than_the_magnetometer_shows(mini_index, mini_names):
-    """Step 3 with ``mag_backoff_measured`` (the default): e = min((|η̂_m| / σ_m)², d² / σ_m²), d² =
+    """Step 3 with ``mag_backoff_measured``: e = min((|η̂_m| / σ_m)², d² / σ_m²), d² =
     n² + n_ref² − 2 n n_ref cos(dip − dip_ref) from the state before each sample. A slow reference
     (scipy's rotation for the dip, the core's reference read from the state by name) gives k_mag on
     every sample where the core itself does not reject the field. The field is scaled by 1.05 after
@@ -107,7 +112,7 @@ def test_backoff_acts_on_no_more_disturbance_than_the_magnetometer_shows(mini_in
     # the core's first field reference after 1 s of any motion (VQF: 5 s of rotation), τ_mag 3 s:
     # k_mag >= 1/N ends after 3.6 s (M5)
     s = VQFTogglingSettings(states=("a", "b"), tau_mag=3.0, mag_new_first_time=1.0, mag_new_min_gyr=0.0,
-                            mag_disturbance_scale=sigma, modulation_tau=3.0)
+                            mag_disturbance_scale=sigma, modulation_tau=3.0, mag_backoff_measured=True)
     f = VQFTogglingFilter(t.fs, s)
     k, expected, core_k = np.zeros(n), np.zeros(n), np.zeros(n)
     for i in range(n):
@@ -239,16 +244,21 @@ def _final_tilt_deg(fs, modulation_tau):
     return np.degrees(angle_between(q[None], np.array([[1.0, 0.0, 0.0, 0.0]])))[0]
 
 
-def test_gains_stored_before_the_measured_backoff_keep_their_meaning(vqf_model_dir, tmp_path):
-    """A gains.json written by this version stores ``mag_backoff_measured`` (True); one written before
-    it existed has no such key, and its σ_m meant the predicted disturbance alone: it loads as False."""
-    assert load_gains(vqf_model_dir, kind=VQF_TOGGLING).mag_backoff_measured is True
-    old = tmp_path / "m"
-    shutil.copytree(vqf_model_dir, old)
-    doc = json.loads((old / "gains.json").read_text())
-    del doc["vqf_9d"]["settings"]["mag_backoff_measured"]
-    (old / "gains.json").write_text(json.dumps(doc))
-    assert load_gains(old, kind=VQF_TOGGLING).mag_backoff_measured is False
+def test_gains_store_their_backoff_law(vqf_model_dir, tmp_path):
+    """A gains.json stores ``mag_backoff_measured``, so models trained with the measured back-off
+    (the default until 2026-12) keep it; one without the key backs off on the predicted disturbance
+    (bounded by the core's rejection factor, the default now)."""
+    assert load_gains(vqf_model_dir, kind=VQF_TOGGLING).mag_backoff_measured is False
+    for stored in (True, None):
+        old = tmp_path / f"m{stored}"
+        shutil.copytree(vqf_model_dir, old)
+        doc = json.loads((old / "gains.json").read_text())
+        if stored is None:
+            del doc["vqf_9d"]["settings"]["mag_backoff_measured"]
+        else:
+            doc["vqf_9d"]["settings"]["mag_backoff_measured"] = stored
+        (old / "gains.json").write_text(json.dumps(doc))
+        assert load_gains(old, kind=VQF_TOGGLING).mag_backoff_measured is bool(stored)
 
 
 @pytest.mark.parametrize("fs", [100.0, 285.714])

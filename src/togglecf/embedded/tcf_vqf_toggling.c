@@ -135,6 +135,7 @@ static void tcf_vqft_follow(tcf_vqft_t *f) {
 #endif
 
 #if TCF_USE_MAG
+#if TCF_VQFT_BACKOFF_MEASURED
 /* _field_deviation_sq: the disturbance the magnetometer shows [uT^2], the least |m - m_ref|^2 over the
    unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame;
    0 without a reference or for an invalid sample */
@@ -148,13 +149,21 @@ static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
                                                        - c->mag_ref_dip);
   return d2 > 0.0f ? d2 : 0.0f;
 }
+#endif
 
-/* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, with
-   TCF_VQFT_BACKOFF_MEASURED at most the one the magnetometer shows */
+/* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, at most the core's
+   rejection factor - 1 (the learned back-off slows the heading correction no more than the core's
+   own), with TCF_VQFT_BACKOFF_MEASURED at most the one the magnetometer shows instead */
 static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
   float e = f->follow[4];
-  if (TCF_VQFT_BACKOFF_MEASURED && e > 0.0f) {
+  if (e > 0.0f) {
+#if TCF_VQFT_BACKOFF_MEASURED
     float em = tcf_vqft_field_deviation_sq(&f->core, mag) / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
+#else
+    float em = f->core.c.mag_rejection_factor - 1.0f;
+    (void)mag;  /* only the measured law reads the field */
+    if (em < 0.0f) em = 0.0f;
+#endif
     if (em < e) e = em;
   }
   f->mod.k_mag = tcf_back_off(f->follow[5], e);

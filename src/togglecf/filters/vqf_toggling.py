@@ -15,11 +15,13 @@ acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulat
    of that time constant, every sample (``_follow``; why: ``VQFTogglingSettings``)
 3. coefficients    the τ_acc Butterworth low-pass, k_mag = 1 − exp(−Ts/τ_mag),
    W_motion = σ⁴/V + σ² and th² from the blended values, exactly as the core derives its own (B5);
-   with a predicted magnetic disturbance (9D, σ_m > 0, the same law as the toggling CF's step 4)
-   k_mag ← k_mag / (1 + e), e = (min(|η̂_m|, |m − m_ref|_min) / σ_m)²: the heading correction
-   backs off where the models predict a disturbed field *and* the magnetometer shows one against
-   the core's reference norm and dip (``mag_backoff_measured``; per sample), on top of the core's
-   own norm/dip rejection (M1–M4)
+   with a predicted magnetic disturbance (9D, σ_m > 0, the toggling CF's law of step 4, bounded)
+   k_mag ← k_mag / (1 + e), e = min((|η̂_m| / σ_m)², f_reject − 1): the heading correction backs
+   off where the models predict a disturbed field, by at most the core's own rejection factor
+   f_reject (VQF's 2: what the core itself does once its rejection time is spent, M4), so the
+   learned part can slow the heading correction but never stop it (per sample; on top of the
+   core's own norm/dip rejection M1–M4). ``mag_backoff_measured`` instead caps e by the deviation
+   the magnetometer shows against the core's reference field, (|m − m_ref|_min / σ_m)²
 4. noise removal   a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1])
 5. the core step on (ω, a_d, m_d) with those coefficients.
 
@@ -96,7 +98,8 @@ class VQFTogglingSettings(VQFCoreSettings):
         rest_th_acc_states: rest threshold th_a [m/s²] per state (default: the core's ``rest_th_acc``).
         confidence_floor: c₀ in [0, 1) of step 1; 0 trusts every prediction fully.
         mag_disturbance_scale: σ_m [µT] of step 3: the heading gain is divided by
-            1 + (|η̂_m| / σ_m)² (9D); 0 (default) = off.
+            1 + min((|η̂_m| / σ_m)², f_reject − 1) (9D), f_reject the core's
+            ``mag_rejection_factor``; 0 (default) = off.
         noise_weight_acc, noise_weight_mag: w_a, w_m in [0, 1] of step 4 (default 0: off).
         modulation_tau: time constant [s] with which ln τ_acc and ln τ_mag follow their blended
             values of step 2 (a first-order low-pass at the filter's rate); 0 (default): at once.
@@ -104,10 +107,12 @@ class VQFTogglingSettings(VQFCoreSettings):
             change from hop to hop with predictions made from the same signal weight the signal
             by its own content, which biases the average (the inclination). Changing a time
             constant no faster than the time scale it sets keeps the average unbiased.
-        mag_backoff_measured: True (default): the back-off of step 3 acts on at most the
-            disturbance the magnetometer itself shows against the core's reference field, so a
-            model that predicts a disturbance the sensor does not see (another sensor, unfamiliar
-            motion) cannot lower the heading gain. False: on the predicted disturbance alone.
+        mag_backoff_measured: False (default): the back-off of step 3 on the predicted
+            disturbance, bounded by the core's rejection factor (the heading gain is at least
+            k_mag / f_reject). True: on at most the disturbance the magnetometer itself shows
+            against the core's reference field (the default of models trained before 2026-12;
+            it keeps no gain where the core's reference is itself disturbed, e.g. a magnet
+            attached from the start).
     """
 
     states: tuple = ("static", "dynamic")
@@ -121,7 +126,7 @@ class VQFTogglingSettings(VQFCoreSettings):
     noise_weight_acc: float = 0.0
     noise_weight_mag: float = 0.0
     modulation_tau: float = 0.0
-    mag_backoff_measured: bool = True
+    mag_backoff_measured: bool = False
 
     def __post_init__(self):
         super().__post_init__()
@@ -282,11 +287,16 @@ def _field_deviation_sq(st, mag):
 @njit(cache=True, inline="always")
 def _heading_gain(st, p, mag):
     """Step 3's k_mag for this sample: the followed τ_mag's gain divided by the back-off
-    1 + e, e = (|η̂_m| / σ_m)², with ``mag_backoff_measured`` at most the disturbance the
-    magnetometer itself shows, (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``)."""
+    1 + e, e = (|η̂_m| / σ_m)² at most f_reject − 1 (the core's rejection factor: the learned
+    back-off slows the heading correction no more than the core's own, M4), or with
+    ``mag_backoff_measured`` at most the disturbance the magnetometer itself shows,
+    (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``)."""
     e = st.mag_disturbance_predicted
-    if p.mag_backoff_measured > 0.5 and e > 0.0:
-        e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
+    if e > 0.0:
+        if p.mag_backoff_measured > 0.5:
+            e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
+        else:
+            e = min(e, max(p.mag_rejection_factor - 1.0, 0.0))
     st.mag_backoff = 1.0 + e
     st.mod.k_mag = back_off(gain_from_tau(st.tau_mag_now, p.ts), e)
 

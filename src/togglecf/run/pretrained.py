@@ -110,8 +110,16 @@ def _what_it_changes(mode: str, s: dict) -> str:
         return f"{mode}: every learned value equals VQF's: this mode runs VQF itself."
     if same_tau:
         return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; what the models change is the heading "
-                f"back-off (σ_m {s['mag_disturbance_scale']:g} µT, on at most the deviation the magnetometer shows).")
+                f"back-off (σ_m {s['mag_disturbance_scale']:g} µT, {_backoff_law(s)}).")
     return f"{mode}: τ_acc per state as above, against VQF's {s['tau_acc']:g} s."
+
+
+def _backoff_law(s: dict) -> str:
+    """The heading back-off's law in words (``VQFTogglingSettings.mag_backoff_measured``)."""
+    if s.get("mag_backoff_measured", False):
+        return "on at most the deviation the magnetometer shows"
+    return (f"at most the core's own rejection factor: the heading gain never below 1/{s.get('mag_rejection_factor', 2.0):g} "
+            "of VQF's")
 
 
 def no_harm_check(lodo: dict) -> dict:
@@ -165,11 +173,11 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
              "## Training data", "", "| dataset | trials | rate [Hz] |", "|---|---|---|"]
     lines += [f"| {d['name']} | {d['trials']} | {', '.join(f'{r:g}' for r in d['rates_hz'])} |" for d in ds]
     lines += ["", f"{metadata['training_trials']} trials in all; motion states: {', '.join(metadata['classes'])}.", "",
-              "## Learned settings", "", "| mode | τ_acc per state [s] | c₀ | σ_m [µT] | measured back-off |",
+              "## Learned settings", "", "| mode | τ_acc per state [s] | c₀ | σ_m [µT] | heading back-off |",
               "|---|---|---|---|---|"]
     for mode, s in metadata["settings"].items():
         lines.append(f"| {mode} | {', '.join(f'{v:g}' for v in s['tau_acc_states'])} | {s['confidence_floor']:g} | "
-                     f"{s['mag_disturbance_scale']:g} | {s.get('mag_backoff_measured', False)} |")
+                     f"{s['mag_disturbance_scale']:g} | {_backoff_law(s) if s['mag_disturbance_scale'] > 0 else 'off'} |")
     lines += ["", *[f"- {_what_it_changes(m, s)}" for m, s in metadata["settings"].items()],
               "", "Everything else is VQF's default (τ_mag 9 s, rest thresholds 2 °/s and 0.5 m/s², no noise "
               "vector subtracted): what does not travel between sensors is not learned "

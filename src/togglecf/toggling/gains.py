@@ -175,11 +175,11 @@ class VQFGainSearch:
     is in docs/concepts/vqf-core.md). A grid of several values still learns it, for data of one
     sensor.
 
-    σ_m's grid starts at 10 µT (a fifth of the Earth's field): with the back-off acting on the
-    field deviation the magnetometer shows (``mag_backoff_measured``), a smaller σ_m backs off on
-    the calibration residuals of a consumer magnetometer (a few µT): a sensor quirk, not a
+    σ_m's grid starts at 10 µT (a fifth of the Earth's field): a smaller σ_m backs off on the
+    calibration residuals of a consumer magnetometer (a few µT): a sensor quirk, not a
     disturbance. This floor was set after seeing a leave-one-dataset-out result (σ_m = 3 µT, learned
-    on BROAD and the iPhone 4S, made the Nexus 5's swinging trials worse than the core)."""
+    on BROAD and the iPhone 4S, made the Nexus 5's swinging trials worse than the core). Whatever
+    σ_m, the back-off is bounded by the core's rejection factor (``VQFTogglingSettings``)."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
     tau_mag: tuple = (9.0,)
@@ -477,13 +477,10 @@ def load_gains(model_dir, use_mag: bool = True, kind: str = "toggling"):
 
 
 def settings_from_dict(cls, d: dict):
-    """A learned filter's settings ``cls`` from their stored JSON form (lists for tuples). For the
-    learned VQF, settings stored before ``mag_backoff_measured`` existed keep their meaning (the
-    back-off on the predicted disturbance alone)."""
-    s = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-    if cls is VQFTogglingSettings:
-        s.setdefault("mag_backoff_measured", False)
-    return cls(**s)
+    """A learned filter's settings ``cls`` from their stored JSON form (lists for tuples); a field
+    the file does not store takes its default (a learned VQF stored before ``mag_backoff_measured``
+    existed backs off on the predicted disturbance, now bounded by the core's rejection factor)."""
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
 def check_gains_format(doc: dict, path) -> None:

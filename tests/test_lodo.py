@@ -8,7 +8,8 @@ import pytest
 
 from togglecf.run.config import load_config
 from togglecf.run.lodo import CORE_OF, ROWS, dataset_dirs, leave_one_dataset_out, lodo_json, lodo_table
-from togglecf.toggling.gains import objective_value, trial_datasets
+from togglecf.toggling import gains as gains_module
+from togglecf.toggling.gains import VQFGainSearch, learn_gains, objective_value, step_margin, trial_datasets
 
 
 def test_worst_dataset_log_ratio_by_hand():
@@ -29,6 +30,48 @@ def test_worst_dataset_log_ratio_by_hand():
     assert np.isfinite(objective_value("worst_dataset_log_ratio", np.array([1.0, np.nan, 11.0]), start, ds))
     with pytest.raises(ValueError, match="objective"):
         objective_value("median", rmse, start, ds)
+
+
+def test_one_standard_error_margin_by_hand():
+    # dataset a: per-trial ln changes -0.1, 0, 0.1, 0 -> SE = std(ddof=1) / 2 = 0.0408; dataset b: all -0.01 -> SE 0
+    current = np.full(7, 2.0)
+    rmse = current * np.exp([-0.1, 0.0, 0.1, 0.0, -0.01, -0.01, -0.01])
+    ds = np.array(["a"] * 4 + ["b"] * 3)
+    se_a = np.std([-0.1, 0.0, 0.1, 0.0], ddof=1) / 2.0
+    assert step_margin("one_se", "worst_dataset_log_ratio", rmse, current, ds) == pytest.approx(se_a, rel=1e-12)
+    assert step_margin("any_gain", "worst_dataset_log_ratio", rmse, current, ds) == 0.0
+    # mean_rmse: the SE of the RMSE differences [deg] over all trials, datasets pooled
+    diff = rmse - current
+    assert step_margin("one_se", "mean_rmse", rmse, current, ds) == pytest.approx(np.std(diff, ddof=1) / math.sqrt(7))
+    # one trial per dataset has no scatter to measure: no margin; a NaN trial is left out
+    assert step_margin("one_se", "worst_dataset_log_ratio", rmse[:2], current[:2], np.array(["a", "b"])) == 0.0
+    assert np.isfinite(step_margin("one_se", "worst_dataset_log_ratio", np.r_[np.nan, rmse[1:]], current, ds))
+    with pytest.raises(ValueError, match="step rule"):
+        step_margin("best", "mean_rmse", rmse, current, ds)
+    with pytest.raises(ValueError, match="step_rule"):
+        VQFGainSearch(step_rule="best")
+
+
+def test_one_se_rule_keeps_the_core_unless_the_gain_beats_the_scatter(monkeypatch):
+    """The descent's acceptance (gains._descend) on a made-up objective: trial RMSEs as a function of
+    τ_acc[rest] alone. τ 2 s lowers the mean log ratio by 1 % with a ±5 % scatter over 10 trials (SE 1.6 %):
+    kept by "any_gain", refused by "one_se"; τ 5 s lowers every trial by 10 %: kept by both."""
+    scatter = np.array([0.05, -0.05] * 5)
+
+    def fake_rmse(settings, trials, predictions, use_mag=True, pool=None):
+        tau = settings.tau_acc_states[0]
+        if tau == 2.0:
+            return np.exp(-0.01 + scatter)
+        return np.full(10, np.exp(-0.1)) if tau == 5.0 and allow_clear else np.ones(10)
+
+    monkeypatch.setattr(gains_module, "trial_total_rmse", fake_rmse)
+    trials = [f"d/{i}" for i in range(10)]
+    states = ("rest", "rotation")
+    for allow_clear, rule, expected in ((False, "any_gain", 2.0), (False, "one_se", 3.0), (True, "one_se", 5.0)):
+        search = VQFGainSearch(tau_acc=(2.0, 3.0, 5.0), confidence_floor=(0.0,), mag_disturbance_scale=(0.0,),
+                               sweeps=1, step_rule=rule)
+        settings, _ = learn_gains(trials, [None] * 10, states, None, search=search, memo=None)
+        assert settings.tau_acc_states[0] == expected, (rule, allow_clear)
 
 
 def test_trial_datasets_from_names():

@@ -15,6 +15,13 @@ heading offset removed):
   and a trial counts by its relative change, so the datasets with the largest errors do not choose
   the values for everyone.
 * ``"mean_rmse"``: the mean total RMSE over all trials (the objective until issue 24).
+
+When a step is kept (``STEP_RULES``): ``"any_gain"`` keeps a candidate that lowers the objective at
+all (the toggling CF's search, which starts from moderate gains, not from a validated filter);
+``"one_se"`` (the learned VQF's, whose start is the VQF core) keeps it only when it lowers the
+objective by more than one standard error of its per-trial change (Breiman's one-standard-error
+rule, ``step_margin``): a learned value leaves the core only for a gain the training trials show
+beyond their own trial-to-trial scatter, not for a few tenths of a percent that need not travel.
 """
 from __future__ import annotations
 
@@ -40,7 +47,7 @@ from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, rmse_deg
 
-__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "objective_value", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "learn_modes", "LearnedGains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
+__all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "STEP_RULES", "objective_value", "step_margin", "trial_datasets", "filter_for", "learn_gains", "mean_total_rmse", "trials_digest", "EvaluationMemo", "EVALUATIONS", "save_gains", "load_gains", "learn_and_save_gains", "learn_modes", "LearnedGains", "GAINS_FILE", "GAINS_FORMAT", "check_gains_format", "settings_from_dict", "mode_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +63,10 @@ GAINS_FORMAT = 2
 OBJECTIVES = ("worst_dataset_log_ratio", "mean_rmse")
 #: weight of the mean over datasets beside the worst one (ties of the worst dataset)
 _TIE_BREAK = 1e-3
+#: when the descent keeps a step (module docstring)
+STEP_RULES = ("any_gain", "one_se")
+#: the least decrease of the objective a kept step needs (a float tie is no step)
+_MIN_STEP = 1e-9
 
 
 def trial_datasets(trials) -> np.ndarray:
@@ -82,6 +93,35 @@ def objective_value(name: str, rmse, start_rmse, datasets) -> float:
     return max(per) + _TIE_BREAK * float(np.mean(per))
 
 
+def step_margin(rule: str, objective: str, rmse, current_rmse, datasets) -> float:
+    """How much a candidate with per-trial total RMSEs ``rmse`` [deg] must lower the objective
+    ``objective`` below the current settings' (``current_rmse``) to be kept, under ``rule``
+    (``STEP_RULES``): 0 for ``"any_gain"``; for ``"one_se"`` the standard error of the mean per-trial
+    change (ln(rmse / current) for the log-ratio objective, the RMSE difference [deg] for
+    ``"mean_rmse"``), computed per dataset and the largest taken (a dataset of one trial has none)."""
+    if rule == "any_gain":
+        return 0.0
+    if rule != "one_se":
+        raise ValueError(f"gain-search step rule must be one of {STEP_RULES}, got {rule!r}")
+    rmse, current_rmse = np.asarray(rmse, np.float64), np.asarray(current_rmse, np.float64)
+    ok = np.isfinite(rmse) & np.isfinite(current_rmse) & (current_rmse > 0) & (rmse > 0)
+    if objective == "mean_rmse":
+        change, groups = rmse - current_rmse, np.zeros(len(rmse), dtype=int)
+    else:
+        change = np.log(np.where(ok, rmse, 1.0) / np.where(ok, current_rmse, 1.0))
+        groups = np.asarray(datasets)
+    se = [float(np.std(change[ok & (groups == g)], ddof=1) / math.sqrt(n))
+          for g in np.unique(groups[ok]) if (n := int(np.sum(ok & (groups == g)))) > 1]
+    return max(se, default=0.0)
+
+
+def _check_search(search, what: str) -> None:
+    if search.objective not in OBJECTIVES:
+        raise ValueError(f"{what} objective must be one of {OBJECTIVES}, got {search.objective!r}")
+    if search.step_rule not in STEP_RULES:
+        raise ValueError(f"{what} step_rule must be one of {STEP_RULES}, got {search.step_rule!r}")
+
+
 def _search_from_dict(cls, d: dict, what: str):
     """A gain-search record from a config table: lists become tuples of floats (the grids), other
     values (``sweeps``) stay; unknown keys are refused (``check_keys``)."""
@@ -105,6 +145,8 @@ class GainSearch:
         confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
         sweeps: passes over all parameters.
         objective: what the descent minimises (``OBJECTIVES``, module docstring).
+        step_rule: when a step is kept (``STEP_RULES``, module docstring): any gain, as its start is
+            no validated filter.
     """
 
     tau: tuple = _TAU_GRID
@@ -117,10 +159,10 @@ class GainSearch:
     confidence_floor: tuple = (0.0,)
     sweeps: int = 2
     objective: str = "worst_dataset_log_ratio"
+    step_rule: str = "any_gain"
 
     def __post_init__(self):
-        if self.objective not in OBJECTIVES:
-            raise ValueError(f"gain-search objective must be one of {OBJECTIVES}, got {self.objective!r}")
+        _check_search(self, "gain-search")
 
     @classmethod
     def from_dict(cls, d: dict) -> "GainSearch":
@@ -179,7 +221,11 @@ class VQFGainSearch:
     calibration residuals of a consumer magnetometer (a few µT): a sensor quirk, not a
     disturbance. This floor was set after seeing a leave-one-dataset-out result (σ_m = 3 µT, learned
     on BROAD and the iPhone 4S, made the Nexus 5's swinging trials worse than the core). Whatever
-    σ_m, the back-off is bounded by the core's rejection factor (``VQFTogglingSettings``)."""
+    σ_m, the back-off is bounded by the core's rejection factor (``VQFTogglingSettings``).
+
+    A step is kept by the one-standard-error rule (``step_rule = "one_se"``, module docstring): the
+    descent starts at the core, and a value leaves it only for a gain larger than the scatter of
+    that gain over the training trials."""
 
     tau_acc: tuple = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 15.0, 30.0)
     tau_mag: tuple = (9.0,)
@@ -192,11 +238,11 @@ class VQFGainSearch:
     noise_weight_mag: tuple = (0.0,)
     sweeps: int = 2
     objective: str = "worst_dataset_log_ratio"
+    step_rule: str = "one_se"
     modulation_tau: float = 3.0
 
     def __post_init__(self):
-        if self.objective not in OBJECTIVES:
-            raise ValueError(f"VQF gain-search objective must be one of {OBJECTIVES}, got {self.objective!r}")
+        _check_search(self, "VQF gain-search")
 
     @classmethod
     def from_dict(cls, d: dict) -> "VQFGainSearch":
@@ -389,7 +435,7 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
     def objective(rmse):
         return objective_value(search.objective, rmse, at_start, datasets)
 
-    best = objective(at_start)
+    best, current = objective(at_start), at_start
     history = [("start", None, best)]
     coords = list(search.candidates(settings, use_mag))
     for sweep in range(search.sweeps):
@@ -400,9 +446,11 @@ def _descend(trials, predictions, states, static_state, use_mag, search, start, 
                 trial_settings = replace(settings, **change)
                 if trial_settings == settings:
                     continue
-                obj = objective(rmse_of(trial_settings))
-                if obj < best - 1e-9:
-                    best, settings, improved = obj, trial_settings, True
+                rmse = rmse_of(trial_settings)
+                obj = objective(rmse)
+                margin = step_margin(search.step_rule, search.objective, rmse, current, datasets)
+                if obj < best - max(_MIN_STEP, margin):
+                    best, settings, current, improved = obj, trial_settings, rmse, True
                     history.append((label, value, obj))
             if verbose:
                 logger.info(f"  {label}: {search.objective} {best:.4f}")
@@ -443,6 +491,7 @@ def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: 
     doc[key] = {"filter": _KIND_OF[type(settings)], "settings": asdict(settings), "trained_fs": rates,
                 "trials": [getattr(t, "name", t) for t in trials],
                 "objective": _OBJECTIVE_TEXT[search.objective] if search is not None else "none (not learned)",
+                "step_rule": search.step_rule if search is not None else None,
                 "predictions": predictions,
                 "history": [[p, v, float(o)] for p, v, o in history]}
     atomic_write_json(path, doc)

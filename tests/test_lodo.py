@@ -54,24 +54,26 @@ def test_one_standard_error_margin_by_hand():
 
 def test_one_se_rule_keeps_the_core_unless_the_gain_beats_the_scatter(monkeypatch):
     """The descent's acceptance (gains._descend) on a made-up objective: trial RMSEs as a function of
-    τ_acc[rest] alone. τ 2 s lowers the mean log ratio by 1 % with a ±5 % scatter over 10 trials (SE 1.6 %):
-    kept by "any_gain", refused by "one_se"; τ 5 s lowers every trial by 10 %: kept by both."""
+    τ_acc[rest] alone. τ 2 s lowers the mean log ratio by 0.01 with a ±0.05 scatter over 10 trials (SE 0.017):
+    kept by "any_gain", refused by "one_se"; τ 5 s (when offered) lowers every trial's by 0.1: kept by both."""
     scatter = np.array([0.05, -0.05] * 5)
 
-    def fake_rmse(settings, trials, predictions, use_mag=True, pool=None):
-        tau = settings.tau_acc_states[0]
-        if tau == 2.0:
-            return np.exp(-0.01 + scatter)
-        return np.full(10, np.exp(-0.1)) if tau == 5.0 and allow_clear else np.ones(10)
+    def rmse_for(clear_gain_offered: bool):
+        def fake_rmse(settings, trials, predictions, use_mag=True, pool=None):
+            tau = settings.tau_acc_states[0]
+            if tau == 2.0:
+                return np.exp(-0.01 + scatter)
+            return np.full(10, np.exp(-0.1)) if tau == 5.0 and clear_gain_offered else np.ones(10)
+        return fake_rmse
 
-    monkeypatch.setattr(gains_module, "trial_total_rmse", fake_rmse)
     trials = [f"d/{i}" for i in range(10)]
     states = ("rest", "rotation")
-    for allow_clear, rule, expected in ((False, "any_gain", 2.0), (False, "one_se", 3.0), (True, "one_se", 5.0)):
+    for clear, rule, expected in ((False, "any_gain", 2.0), (False, "one_se", 3.0), (True, "one_se", 5.0)):
+        monkeypatch.setattr(gains_module, "trial_total_rmse", rmse_for(clear))
         search = VQFGainSearch(tau_acc=(2.0, 3.0, 5.0), confidence_floor=(0.0,), mag_disturbance_scale=(0.0,),
                                sweeps=1, step_rule=rule)
         settings, _ = learn_gains(trials, [None] * 10, states, None, search=search, memo=None)
-        assert settings.tau_acc_states[0] == expected, (rule, allow_clear)
+        assert settings.tau_acc_states[0] == expected, (rule, clear)
 
 
 def test_trial_datasets_from_names():

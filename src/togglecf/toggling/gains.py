@@ -85,31 +85,36 @@ def objective_value(name: str, rmse, start_rmse, datasets) -> float:
         return float(np.mean(rmse))
     if name != "worst_dataset_log_ratio":
         raise ValueError(f"gain objective must be one of {OBJECTIVES}, got {name!r}")
-    ok = np.isfinite(rmse) & np.isfinite(start_rmse) & (start_rmse > 0)
-    ratio = np.log(np.where(ok, rmse, 1.0) / np.where(ok, start_rmse, 1.0))
+    ok, ratio = _log_ratios(rmse, start_rmse)
     per = [float(np.mean(ratio[ok & (datasets == d)])) for d in np.unique(datasets[ok])]
     if not per:
         return float("nan")
     return max(per) + _TIE_BREAK * float(np.mean(per))
 
 
+def _log_ratios(rmse, reference):
+    """``(ok, ln(rmse / reference))`` per trial; ``ok`` where both are finite and ``reference > 0``
+    (elsewhere the ratio is 0 and must be left out)."""
+    ok = np.isfinite(rmse) & np.isfinite(reference) & (reference > 0)
+    return ok, np.log(np.where(ok, rmse, 1.0) / np.where(ok, reference, 1.0))
+
+
 def step_margin(rule: str, objective: str, rmse, current_rmse, datasets) -> float:
     """How much a candidate with per-trial total RMSEs ``rmse`` [deg] must lower the objective
     ``objective`` below the current settings' (``current_rmse``) to be kept, under ``rule``
     (``STEP_RULES``): 0 for ``"any_gain"``; for ``"one_se"`` the standard error of the mean per-trial
-    change (ln(rmse / current) for the log-ratio objective, the RMSE difference [deg] for
-    ``"mean_rmse"``), computed per dataset and the largest taken (a dataset of one trial has none)."""
+    change: of ln(rmse / current) per dataset, the largest taken, for the log-ratio objective; of the
+    RMSE difference [deg] over all trials for ``"mean_rmse"`` (a group of one trial has none)."""
     if rule == "any_gain":
         return 0.0
     if rule != "one_se":
         raise ValueError(f"gain-search step rule must be one of {STEP_RULES}, got {rule!r}")
     rmse, current_rmse = np.asarray(rmse, np.float64), np.asarray(current_rmse, np.float64)
-    ok = np.isfinite(rmse) & np.isfinite(current_rmse) & (current_rmse > 0) & (rmse > 0)
+    ok, change = _log_ratios(rmse, current_rmse)
+    ok &= rmse > 0
+    groups = np.asarray(datasets)
     if objective == "mean_rmse":
         change, groups = rmse - current_rmse, np.zeros(len(rmse), dtype=int)
-    else:
-        change = np.log(np.where(ok, rmse, 1.0) / np.where(ok, current_rmse, 1.0))
-        groups = np.asarray(datasets)
     se = [float(np.std(change[ok & (groups == g)], ddof=1) / math.sqrt(n))
           for g in np.unique(groups[ok]) if (n := int(np.sum(ok & (groups == g)))) > 1]
     return max(se, default=0.0)

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from togglecf.core import quaternion as quat
-from togglecf.metrics.broad import (error_angles_rad, error_quaternion, group_means, remove_heading_offset, tagp,
-                                 trial_errors)
+from togglecf.metrics.broad import (ErrorReference, error_angles_rad, error_quaternion, group_means,
+                                    remove_heading_offset, rmse_deg, tagp, trial_errors)
 from conftest import random_quats
 
 
@@ -80,6 +80,34 @@ def test_six_d_removes_constant_heading_only(ref):
     assert e["total"] == pytest.approx(3, abs=0.05)  # residual: heading part of the tilted error
     fixed = remove_heading_offset(est, ref, mov)
     assert np.all(np.isfinite(fixed))
+
+
+def _errors_by_definition(est, ref, movement, six_d):
+    """BROAD's errors computed on every sample, then averaged over ``movement`` (the metrics doc's
+    recipe; ``ErrorReference`` computes the scored samples alone)."""
+    if six_d:
+        est = remove_heading_offset(est, ref, movement)
+    out = {k: rmse_deg(v, movement) for k, v in error_angles_rad(error_quaternion(est, ref)).items()}
+    d = np.angle(np.exp(1j * (quat.to_euler_zyx(est) - quat.to_euler_zyx(ref))))
+    return out | {k: rmse_deg(d[:, i], movement) for i, k in enumerate(("roll", "pitch", "yaw"))}
+
+
+@pytest.mark.parametrize("six_d", [False, True])
+def test_error_reference_equals_the_definition_bit_for_bit(ref, rng, six_d):
+    # the study's numbers must not move when a grid scores through one ErrorReference: every error is
+    # per sample, so the scored rows alone give the same floats (same values, same order into each mean)
+    est = quat.normalize(ref + 0.05 * rng.standard_normal(ref.shape)) * rng.uniform(0.5, 2.0, (len(ref), 1))
+    ref = ref.copy()
+    ref[100:140] = np.nan  # a reference gap inside the scored samples
+    movement = rng.random(len(ref)) < 0.6
+    reference = ErrorReference(ref, movement)
+    for q in (est, quat.multiply(rot([0, 0, 1], 25), est)):
+        want = _errors_by_definition(q, ref, movement, six_d)
+        assert reference.errors(q, six_d) == want
+        assert trial_errors(q, ref, movement, six_d) == want
+    assert all(np.isnan(v) for v in ErrorReference(ref, np.zeros(len(ref), bool)).errors(est, six_d).values())
+    with pytest.raises(ValueError, match="q_est"):
+        reference.errors(est[:-1])
 
 
 def test_error_quaternion_is_earth_frame():

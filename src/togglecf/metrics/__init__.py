@@ -2,6 +2,7 @@
 degrees over the ``movement`` samples, group means and the TAGP."""
 from togglecf.metrics.broad import (
                                     METRICS,
+                                    ErrorReference,
                                     TagpResult,
                                     error_angles_rad,
                                     error_quaternion,
@@ -12,5 +13,5 @@ from togglecf.metrics.broad import (
                                     trial_errors,
 )
 
-__all__ = ["METRICS", "TagpResult", "error_angles_rad", "error_quaternion", "group_means", "remove_heading_offset",
-           "rmse_deg", "tagp", "trial_errors"]
+__all__ = ["METRICS", "ErrorReference", "TagpResult", "error_angles_rad", "error_quaternion", "group_means",
+           "remove_heading_offset", "rmse_deg", "tagp", "trial_errors"]

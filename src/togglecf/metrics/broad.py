@@ -13,7 +13,7 @@ import numpy as np
 from togglecf.core import quaternion as quat
 
 __all__ = [
-    "error_quaternion", "error_angles_rad", "remove_heading_offset", "rmse_deg", "trial_errors",
+    "ErrorReference", "error_quaternion", "error_angles_rad", "remove_heading_offset", "rmse_deg", "trial_errors",
     "METRICS", "group_means", "tagp", "TagpResult",
 ]
 
@@ -46,17 +46,71 @@ def remove_heading_offset(q_est, q_ref, movement) -> np.ndarray:
     sel = np.asarray(movement, bool) & np.isfinite(psi)
     if not sel.any():
         return np.asarray(q_est, float)
-    offset = np.arctan2(np.mean(np.sin(psi[sel])), np.mean(np.cos(psi[sel])))
+    return _rotated_by_mean_heading(q_est, psi[sel])
+
+
+def _rotated_by_mean_heading(q_est, psi) -> np.ndarray:
+    """``q_est`` rotated about the vertical by minus the circular mean of the finite headings ``psi`` [rad]."""
+    offset = np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi)))
     q_fix = np.array([np.cos(-offset / 2), 0.0, 0.0, np.sin(-offset / 2)])
     return quat.multiply(q_fix, q_est)
 
 
-def rmse_deg(err_rad, movement) -> float:
-    """``sqrt(nanmean(e²))`` over the movement samples, in degrees (NaN when none is valid)."""
-    e = np.asarray(err_rad)[np.asarray(movement, bool)]
+def _rmse_deg(e) -> float:
     if e.size == 0 or not np.isfinite(e).any():
         return float("nan")
     return float(np.degrees(np.sqrt(np.nanmean(e * e))))
+
+
+def rmse_deg(err_rad, movement) -> float:
+    """``sqrt(nanmean(e²))`` over the movement samples, in degrees (NaN when none is valid)."""
+    return _rmse_deg(np.asarray(err_rad)[np.asarray(movement, bool)])
+
+
+class ErrorReference:
+    """The reference of one trial, prepared once to score many estimates of it (a grid, a gain
+    search): ``ErrorReference(q_ref, movement).errors(q_est)`` equals ``trial_errors(q_est, q_ref,
+    movement)`` bit for bit, computed on the scored samples only, with the reference's part
+    (normalised conjugate, Euler angles) computed once.
+
+    Args:
+        q_ref: ``(N, 4)`` ground truth (NaN rows are ignored).
+        movement: ``(N,)`` bool, the samples to score.
+    """
+
+    def __init__(self, q_ref, movement):
+        q_ref = quat.as_quat(q_ref, "q_ref")
+        movement = np.asarray(movement, bool)
+        if not (q_ref.ndim == 2 and movement.shape == q_ref.shape[:1]):
+            raise ValueError(f"shape mismatch: q_ref {q_ref.shape}, movement {movement.shape}")
+        self.n_samples = q_ref.shape[0]
+        self.movement = movement
+        scored = q_ref[movement]
+        self._ref_inverse = quat.conjugate(quat.normalize(scored))  # every error is per sample: the
+        self._ref_euler = quat.to_euler_zyx(scored)                  # scored rows alone give the same RMSE
+
+    def errors(self, q_est, six_d: bool = False) -> dict[str, float]:
+        """RMSE [deg] of the ``(N, 4)`` estimate ``q_est``: BROAD's total/heading/inclination plus
+        roll/pitch/yaw (``METRICS``); ``six_d``: remove the constant heading offset first."""
+        q_est = quat.as_quat(q_est, "q_est")
+        if q_est.shape != (self.n_samples, 4):
+            raise ValueError(f"shape mismatch: q_est {q_est.shape}, q_ref ({self.n_samples}, 4)")
+        q = q_est[self.movement]
+        if six_d:
+            q_err = self._error_quaternion(q)
+            psi = 2.0 * np.arctan2(q_err[:, 3], q_err[:, 0])  # as remove_heading_offset
+            if np.isfinite(psi).any():
+                q = _rotated_by_mean_heading(q, psi[np.isfinite(psi)])
+        out = {k: _rmse_deg(v) for k, v in error_angles_rad(self._error_quaternion(q)).items()}
+        d = quat.to_euler_zyx(q) - self._ref_euler  # Euler-angle errors, wrapped to (-π, π]
+        d = np.angle(np.exp(1j * d))
+        for i, k in enumerate(("roll", "pitch", "yaw")):
+            out[k] = _rmse_deg(d[:, i])
+        return out
+
+    def _error_quaternion(self, q) -> np.ndarray:
+        """``error_quaternion`` of the scored rows ``q`` against the reference's."""
+        return quat.normalize(quat.multiply(quat.normalize(q), self._ref_inverse))
 
 
 def trial_errors(q_est, q_ref, movement, six_d: bool = False) -> dict[str, float]:
@@ -67,21 +121,13 @@ def trial_errors(q_est, q_ref, movement, six_d: bool = False) -> dict[str, float
         q_ref: ``(N, 4)`` ground truth (NaN rows are ignored).
         movement: ``(N,)`` bool, the samples to score.
         six_d: remove the constant heading offset first (estimates without magnetometer).
+    Scoring many estimates of one trial: ``ErrorReference``.
     """
     q_est, q_ref = quat.as_quat(q_est, "q_est"), quat.as_quat(q_ref, "q_ref")
     movement = np.asarray(movement, bool)
     if not (q_est.shape == q_ref.shape and q_est.ndim == 2 and movement.shape == q_est.shape[:1]):
         raise ValueError(f"shape mismatch: q_est {q_est.shape}, q_ref {q_ref.shape}, movement {movement.shape}")
-    if six_d:
-        q_est = remove_heading_offset(q_est, q_ref, movement)
-    errs = error_angles_rad(error_quaternion(q_est, q_ref))
-    out = {k: rmse_deg(v, movement) for k, v in errs.items()}
-    # Euler-angle errors, wrapped to (-π, π]
-    d = quat.to_euler_zyx(q_est) - quat.to_euler_zyx(q_ref)
-    d = np.angle(np.exp(1j * d))
-    for i, k in enumerate(("roll", "pitch", "yaw")):
-        out[k] = rmse_deg(d[:, i], movement)
-    return out
+    return ErrorReference(q_ref, movement).errors(q_est, six_d)
 
 
 def group_means(per_trial: dict[str, dict[str, float]], groups: dict[str, list[str]]) -> dict[str, dict]:

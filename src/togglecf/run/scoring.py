@@ -11,7 +11,7 @@ import numpy as np
 
 from togglecf.data.broad import Trial
 from togglecf.filters import FilterOutput, dt_from_timestamps
-from togglecf.metrics.broad import trial_errors
+from togglecf.metrics.broad import ErrorReference
 from togglecf.registry import FilterSpec
 
 __all__ = ["TrialResult", "run_built", "run_filter", "score_trial", "score_trials", "warm_up", "grid_points",
@@ -78,10 +78,13 @@ def _timed_run(f, trial: Trial, use_mag: bool) -> tuple[FilterOutput, float]:
     return out, 1e6 * (time.perf_counter() - t0) / trial.n_samples
 
 
-def score_trial(trial: Trial, spec: FilterSpec) -> tuple[TrialResult, FilterOutput]:
-    """BROAD's errors of ``spec`` on ``trial`` (6D: heading offset removed) and the output itself."""
+def score_trial(trial: Trial, spec: FilterSpec,
+                reference: ErrorReference | None = None) -> tuple[TrialResult, FilterOutput]:
+    """BROAD's errors of ``spec`` on ``trial`` (6D: heading offset removed) and the output itself;
+    ``reference``: the trial's ``ErrorReference`` when the caller scores it many times (a grid)."""
     out, us = run_filter(trial, spec)
-    errs = trial_errors(out.quat, trial.opt_quat, trial.movement, six_d=not spec.use_mag)
+    reference = reference or ErrorReference(trial.opt_quat, trial.movement)
+    errs = reference.errors(out.quat, six_d=not spec.use_mag)
     return TrialResult(trial.name, trial.groups, errs, us, trial.n_samples, spec.as_params(),
                        run_diagnostics(out, trial)), out
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from togglecf import __version__
 from togglecf.data.broad import DataError, check_evaluable
-from togglecf.metrics.broad import TagpResult, tagp
+from togglecf.metrics.broad import ErrorReference, TagpResult, tagp
 from togglecf.parallel.backend import Backend, LocalBackend, data_location, load_trial_cached, trial_identity
 from togglecf.registry import filter_spec
 from togglecf.run.scoring import TrialResult, grid_points, score_trial, warm_up
@@ -133,7 +133,8 @@ def _sweep_task(root, name, filter_name, params_list, use_mag):
     except Exception as exc:  # reported as a failed trial; the sweep goes on
         return {"load_error": _error_text(exc)}
     invalid = {**trial.invalid, "samples": trial.n_invalid}
-    return {"results": [score_trial(trial, filter_spec(filter_name, p, use_mag))[0] for p in params_list],
+    reference = ErrorReference(trial.opt_quat, trial.movement)  # once for all the task's points
+    return {"results": [score_trial(trial, filter_spec(filter_name, p, use_mag), reference)[0] for p in params_list],
             "invalid": invalid}
 
 

@@ -33,7 +33,7 @@ from togglecf.learn.trees import (CompleteForestArrays, FlatForestArrays, predic
 
 __all__ = ["FeatureWindow", "HeldPrediction", "InLoopModels", "ModelArrays",
            "ModelTogglingFilter", "ModelVQFTogglingFilter", "Outputs", "Samples", "filter_step", "hop_predict",
-           "inloop_batch", "params_by_value", "walk_forest"]
+           "inloop_batch", "walk_forest"]
 
 
 class Samples(NamedTuple):
@@ -154,7 +154,7 @@ def inloop_batch(state, params, samples, window, models, held, out):
     many arguments, the arrays among them reference-counted, cost as much as the whole VQF core; the
     samples go to ``push_sample`` and the step as tuples and the step writes a scratch ``diag`` (row
     views of the input arrays, each reference-counted, cost 0.1 µs per sample); ``params`` as from
-    ``params_by_value``."""
+    ``PredictionDrivenFilter.step_params``."""
     L = window.ring.shape[0]
     hop = window.hop
     pred = held.pred
@@ -185,16 +185,6 @@ def inloop_batch(state, params, samples, window, models, held, out):
         for j in range(pred.shape[0]):
             out.pred[i, j] = pred[j]
         out.fallback[i] = held.fallback[0]
-
-
-def params_by_value(params):
-    """``params`` (a coefficients record) with its non-empty 1-D float arrays as tuples of the same
-    values: numba reference-counts every array of a record at each call of the filter's step
-    (measured 0.08 µs per sample for the five arrays of ``VQFTogglingCoefficients``, a quarter of the
-    VQF core), while a tuple of floats is passed as plain values. The steps only index these fields."""
-    conv = {k: tuple(float(x) for x in v) for k, v in params._asdict().items()
-            if isinstance(v, np.ndarray) and v.ndim == 1 and v.size and v.dtype == np.float64}
-    return params._replace(**conv) if conv else params
 
 
 class InLoopModels:
@@ -275,12 +265,6 @@ class InLoopModels:
         self.pred[:] = state[c:d]
         self.fallback[:] = state[d:]
 
-    def _loop_params(self):
-        """``params_by_value(self.params)``, rebuilt when ``self.params`` is replaced."""
-        if getattr(self, "_loop_params_of", None) is not self.params:
-            self._loop_params_of, self._loop_params_value = self.params, params_by_value(self.params)
-        return self._loop_params_value
-
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
         """One sample (``OrientationFilter.update``): ``update_batch`` of one row, the same kernel."""
         if prediction is not None:
@@ -296,7 +280,7 @@ class InLoopModels:
         n = samples.gyr.shape[0]
         out = Outputs(np.empty((n, 4)), np.zeros((n, len(self.diagnostic_names))), np.empty((n, self.n_predictions)),
                       np.empty(n))
-        inloop_batch(self.state, self._loop_params(), samples, self._window, self._model_arrays, self._held, out)
+        inloop_batch(self.state, self.step_params(), samples, self._window, self._model_arrays, self._held, out)
         if n:
             self._diag[:] = out.diag[-1]
         diags = {k: out.diag[:, i] for i, k in enumerate(self.diagnostic_names)}

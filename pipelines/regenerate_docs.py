@@ -135,7 +135,9 @@ def study_tables(study: Path, out: Path, command: str) -> None:
     n_folds = len(res.get("folds", []))
     total_s = res.get("timing", {}).get("total_s")
     code = f" at {res['code']}" if res.get("code") else ""
-    src = (f"the held-out study of `make run` in `{_shown(study)}` (results.json of {_mtime(study / 'results.json')}"
+    # a study with its ablations (rows beyond the main filters) is the one of `--full`
+    run = "python pipelines/main.py --full" if set(df["filter"]) - set(MAIN_FILTERS) else "make run"
+    src = (f"the held-out study of `{run}` in `{_shown(study)}` (results.json of {_mtime(study / 'results.json')}"
            f"{code}; {len(trials)} BROAD trials, {n_folds} folds by whole trial"
            + (f", run time {total_s / 60:.1f} min" if total_s else "") + ")")
     head = header(command, src)
@@ -174,7 +176,8 @@ def study_tables(study: Path, out: Path, command: str) -> None:
         write(out, "study_ablations.md", head + "\nMean total RMSE [°] over all trials, same folds; 6D rows "
               "with the constant heading offset removed.\n\n" + md_table(["variant", "total [°]"], arows))
     else:
-        placeholder(out, "study_ablations.md", "A study with ablations", "Run `make run`.")
+        placeholder(out, "study_ablations.md", "A study with ablations",
+                    "Run `python pipelines/main.py --full` (`make run` leaves the ablations out).")
 
     _study_highlights(out, head, tot, means, mains)
 
@@ -210,7 +213,7 @@ def transfer_tables(transfer: Path, study: Path, both: Path, out: Path, command:
     if not ((both / "per_trial.csv").is_file() and (study / "per_trial.csv").is_file()
             and (transfer / "phone.json").is_file()):
         placeholder(out, "transfer_both.md", f"`{_shown(both)}`, `{_shown(study)}` and `{_shown(transfer)}/phone.json`",
-                    "Run `make run` with the phone data present.")
+                    "Run `python pipelines/main.py --full` with the phone data present.")
         return
     alone = pd.read_csv(study / "per_trial.csv").pivot_table(index="trial", columns="filter", values="total")
     joint = pd.read_csv(both / "per_trial.csv").pivot_table(index="trial", columns="filter", values="total")

@@ -171,3 +171,23 @@ def test_local_backend_runs_in_process_inside_a_daemon(monkeypatch):
 
 def _square(x):
     return x * x
+
+
+def _negate(x):
+    return -x
+
+
+def _fail(name):
+    raise ValueError(f"{name}: bad")
+
+
+@pytest.mark.parametrize("backend", [be.InlineBackend(), be.LocalBackend(2), be.LocalBackend(2, "forkserver")],
+                         ids=["inline", "fork", "forkserver"])
+def test_run_tasks_mixes_functions_and_returns_in_task_order(backend):
+    # make run puts the study's folds, the left-out datasets and the pretrained training on one pool
+    tasks = [be.Task(("b", k), _square, (k,)) for k in range(3)] + [be.Task("a", _negate, (5,))]
+    done = be.run_tasks(backend, tasks)
+    assert list(done) == [("b", 0), ("b", 1), ("b", 2), "a"]
+    assert list(done.values()) == [0, 1, 4, -5]
+    with pytest.raises(ValueError, match="trial 7: bad"):
+        be.run_tasks(backend, tasks + [be.Task("c", _fail, ("trial 7",))])

@@ -7,11 +7,13 @@ from togglecf.parallel.backend import (
                                        InlineBackend,
                                        LocalBackend,
                                        Outcome,
+                                       Task,
                                        load_trial_cached,
                                        make_backend,
+                                       run_tasks,
                                        sweep_chunk_size,
                                        trial_identity,
 )
 
-__all__ = ["Backend", "BackendError", "DaskBackend", "InlineBackend", "LocalBackend", "Outcome", "load_trial_cached",
-           "make_backend", "sweep_chunk_size", "trial_identity"]
+__all__ = ["Backend", "BackendError", "DaskBackend", "InlineBackend", "LocalBackend", "Outcome", "Task",
+           "load_trial_cached", "make_backend", "run_tasks", "sweep_chunk_size", "trial_identity"]

@@ -31,8 +31,8 @@ from togglecf.core.config import BACKENDS
 from togglecf.core.progress import progress
 from togglecf.data.broad import DatasetIndex, open_index
 
-__all__ = ["BACKENDS", "BackendError", "Outcome", "Backend", "LocalBackend", "InlineBackend", "DaskBackend",
-           "make_backend", "load_trial_cached", "trial_identity", "data_location", "DASK_INSTALL_HINT"]
+__all__ = ["BACKENDS", "BackendError", "Outcome", "Task", "Backend", "LocalBackend", "InlineBackend", "DaskBackend",
+           "make_backend", "run_tasks", "load_trial_cached", "trial_identity", "data_location", "DASK_INSTALL_HINT"]
 
 DASK_INSTALL_HINT = "pip install 'togglecf[dask]'"
 
@@ -51,6 +51,34 @@ class Outcome:
     key: object
     value: object = None
     error: BaseException | None = None
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task of ``run_tasks``: ``fn(*args)`` under ``key``; ``fn`` a module-level function."""
+
+    key: object
+    fn: object
+    args: tuple = ()
+
+
+def _call(fn, *args):
+    """The one task function of ``run_tasks``: ``Backend.run`` takes one function, this lets tasks differ."""
+    return fn(*args)
+
+
+def run_tasks(backend: "Backend", tasks, desc=None, unit="task") -> dict:
+    """Run ``tasks`` (``Task``s, of any functions) on ``backend``, in the order given (put the longest
+    first: a local pool starts them in that order); returns key -> value once every task is done, and
+    raises the first failure. What lets one pool run several steps' tasks at once: the held-out study's
+    folds beside the left-out datasets of ``make run``, so no worker waits for the last task of a step."""
+    tasks = list(tasks)
+    done = {}
+    for outcome in backend.run(_call, [(t.key, (t.fn, *t.args)) for t in tasks], desc=desc, unit=unit):
+        if outcome.error is not None:
+            raise outcome.error
+        done[outcome.key] = outcome.value
+    return {t.key: done[t.key] for t in tasks}
 
 
 class Backend:

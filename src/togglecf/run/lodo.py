@@ -21,6 +21,7 @@ import datetime as dt
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.filters.toggling import TogglingFilter, TogglingSettings
 from togglecf.metrics.broad import trial_errors
-from togglecf.parallel.backend import LocalBackend
+from togglecf.parallel.backend import LocalBackend, Task, run_tasks
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
 from togglecf.run.config import load_config
@@ -42,8 +43,8 @@ from togglecf.run.transfer import models_transfer
 from togglecf.toggling.gains import GainSearch
 from togglecf.toggling.load import load_compiled_models
 
-__all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "dataset_dirs", "leave_one_dataset_out", "toggling_core_settings",
-           "toggling_core_results", "madgwick_tagp", "lodo_table", "lodo_json"]
+__all__ = ["TOGGLING_CORE", "MADGWICK_TAGP", "CORE_OF", "LodoPlan", "dataset_dirs", "leave_one_dataset_out",
+           "plan_lodo", "toggling_core_settings", "toggling_core_results", "madgwick_tagp", "lodo_table", "lodo_json"]
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +127,29 @@ def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs
     Madgwick's TAGP on each training set is found first, here (``store``: a ``ResultStore`` that
     keeps the grid's results, so each trial's grid is computed once over all left-out datasets);
     then the left-out datasets run as tasks on ``backend`` (default: a local process pool on
-    ``jobs`` cores; with Dask the data and ``out_dir`` must be on a filesystem the workers share)."""
+    ``jobs`` cores; with Dask the data and ``out_dir`` must be on a filesystem the workers share).
+    ``plan_lodo`` runs it in parts (``make run`` runs its tasks on one pool with other steps')."""
+    plan = plan_lodo(dirs, out_dir, config, verbose, jobs, store)
+    # forkserver: a task trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
+    backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, len(plan.dirs)), start_method="forkserver")
+    return plan.finish(run_tasks(backend, plan.tasks, desc="leave one dataset out", unit="dataset"))
+
+
+@dataclass
+class LodoPlan:
+    """Leave one dataset out with Madgwick's TAGPs found and its left-out datasets ready to run
+    (``plan_lodo``): ``tasks`` (``parallel.Task``, keys ``("lodo", name)``), and ``finish(done)`` for
+    ``leave_one_dataset_out``'s result from their values (key -> value, as ``parallel.run_tasks`` returns them)."""
+
+    dirs: list
+    tasks: list
+
+    def finish(self, done: dict) -> dict:
+        return {d.name: done[("lodo", d.name)] for d in self.dirs}
+
+
+def plan_lodo(dirs, out_dir, config=None, verbose: bool = True, jobs: int | None = None, store=None) -> LodoPlan:
+    """``leave_one_dataset_out`` up to its tasks (the same arguments): Madgwick's TAGP on each training set."""
     dirs = [Path(d) for d in dirs]
     if len(dirs) < 2:
         raise ValueError(f"leave one dataset out needs at least two datasets, got {[str(d) for d in dirs]}")
@@ -136,15 +159,9 @@ def leave_one_dataset_out(dirs, out_dir, config=None, verbose: bool = True, jobs
         beta = madgwick_tagp(train, jobs, store)
         log.info(f"  Madgwick's TAGP on {', '.join(d.name for d in train)}: {beta}")
         model_dir = Path(out_dir) / f"without_{left.name}" / "models"
-        tasks.append((left.name, (left, train, model_dir, config, verbose, beta, configured_level())))
-    results = {}
-    # forkserver: a task trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
-    backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, len(tasks)), start_method="forkserver")
-    for outcome in backend.run(_left_out, tasks, desc="leave one dataset out", unit="dataset"):
-        if outcome.error is not None:
-            raise outcome.error
-        results[outcome.key] = outcome.value
-    return {d.name: results[d.name] for d in dirs}
+        tasks.append(Task(("lodo", left.name), _left_out,
+                          (left, train, model_dir, config, verbose, beta, configured_level())))
+    return LodoPlan(dirs, tasks)
 
 
 def _mean(res: dict, names) -> float:

@@ -37,7 +37,8 @@ from togglecf.toggling.gains import (
 )
 from togglecf.toggling.pretrained import PRETRAINED_FILE, VQF_MODES, load_pretrained, portable_from_model_dir
 
-__all__ = ["NO_HARM_MARGIN", "train_pretrained", "write_model_card", "no_harm_check", "model_card", "dataset_notice",
+__all__ = ["NO_HARM_MARGIN", "train_pretrained", "train_pretrained_models", "write_pretrained", "write_model_card",
+           "no_harm_check", "model_card", "dataset_notice",
            "retune_pretrained", "RETUNED_FILE"]
 
 log = logging.getLogger(__name__)
@@ -67,12 +68,27 @@ def dataset_notice(data_dir) -> list[str]:
 def train_pretrained(dirs, out_dir, lodo: dict | None = None, verbose: bool = True) -> Path:
     """Train on every directory of ``dirs`` into ``out_dir/models``; write ``out_dir/learned_vqf.npz``
     (``learn.portable``) and ``out_dir/MODEL_CARD.md`` (with ``lodo``: the leave-one-dataset-out results).
-    Returns the portable file."""
-    out_dir = Path(out_dir)
+    Returns the portable file. In two parts: ``train_pretrained_models``, then ``write_pretrained``."""
+    train_pretrained_models(dirs, out_dir, verbose)
+    return write_pretrained(dirs, out_dir, lodo)
+
+
+def train_pretrained_models(dirs, out_dir, verbose: bool = True) -> Path:
+    """The pretrained recipe's training (``togglecf train``, the default config, gain modes ``vqf_9d`` and
+    ``vqf_6d``) on every directory of ``dirs`` into ``out_dir/models``, which it returns: a task of its own
+    (``make run`` trains it beside the left-out datasets, whose results only its card needs)."""
     cfg = load_config()
     cfg["gains"]["modes"] = ["vqf_9d", "vqf_6d"]
-    model_dir = out_dir / "models"
+    model_dir = Path(out_dir) / "models"
     run_training(cfg, data_dir=[str(d) for d in dirs], out=model_dir, verbose=verbose)
+    return model_dir
+
+
+def write_pretrained(dirs, out_dir, lodo: dict | None = None) -> Path:
+    """``out_dir/learned_vqf.npz`` and its ``MODEL_CARD.md`` from the models ``train_pretrained_models``
+    wrote in ``out_dir/models`` (``lodo``: the leave-one-dataset-out results, for the card's check)."""
+    out_dir = Path(out_dir)
+    model_dir = out_dir / "models"
     meta = json.loads((model_dir / "metadata.json").read_text())
     gains = json.loads((model_dir / "gains.json").read_text())
     datasets = []

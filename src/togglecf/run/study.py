@@ -37,7 +37,7 @@ from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.labels import LabelSettings, make_targets
 from togglecf.metrics.broad import error_angles_rad, error_quaternion, remove_heading_offset, tagp, trial_errors
-from togglecf.parallel.backend import LocalBackend, data_location
+from togglecf.parallel.backend import LocalBackend, Task, data_location, run_tasks
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import write_report
 from togglecf.run.config import GAIN_KEYS, load_config
@@ -47,7 +47,7 @@ from togglecf.run.train import TrainedModels, run_training
 from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, mode_name
 from togglecf.toggling.load import IN_LOOP
 
-__all__ = ["StudyConfig", "load_study_config", "run_study"]
+__all__ = ["StudyConfig", "StudyPlan", "load_study_config", "plan_study", "run_study"]
 
 DEFAULT_STUDY_CONFIG = config_path("study.toml")
 ABLATIONS = ("toggling_only", "noise_only", "6d", "ransac_off", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias")
@@ -251,54 +251,103 @@ def run_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports
     ``backend`` (``togglecf.parallel``) runs the folds as tasks (default: a local process pool on
     ``jobs`` cores; with Dask the data and ``out_dir`` must be on a filesystem the workers share);
     ``store`` (a ``run.sweep.ResultStore``) keeps the baseline grids' results, so that a later study
-    on the same trials computes none of them again."""
+    on the same trials computes none of them again. ``plan_study`` runs it in parts (``make run``
+    runs its folds on one pool with other steps' tasks)."""
+    plan = plan_study(config, data_dir, out_dir, trials)
+    plan.evaluate_grids(store)
+    # forkserver: a fold trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
+    backend = backend or LocalBackend(min(plan.jobs, len(plan.folds)), start_method="forkserver")
+    t0 = time.perf_counter()
+    done = run_tasks(backend, plan.tasks(), desc="study folds", unit="fold")
+    return plan.finish(done, folds_s=time.perf_counter() - t0)
+
+
+@dataclass
+class StudyPlan:
+    """A study whose folds are ready to run (``plan_study``): ``evaluate_grids`` runs the baseline grids,
+    ``tasks()`` are the folds (``parallel.Task``, keys ``(label, k)``), ``finish(done)`` assembles their
+    results (key -> value, as ``parallel.run_tasks`` returns them) with the grids and writes the report.
+    The grids and the folds are independent."""
+
+    cfg: StudyConfig
+    job: _FoldJob
+    names: list
+    folds: list
+    loaded: dict
+    index: object
+    out: Path
+    timing: dict
+    t_start: float
+    label: str = "study"
+    grids: dict = field(default_factory=dict)  # "9d", "6d", "rest_bias" -> filter -> (params, results per point)
+
+    @property
+    def jobs(self) -> int:
+        return self.job.jobs
+
+    def tasks(self) -> list:
+        return [Task((self.label, k), _run_fold, (self.job, k, test)) for k, test in enumerate(self.folds)]
+
+    def evaluate_grids(self, store=None, jobs: int | None = None) -> None:
+        """Every baseline's grid on every trial (each fold takes its TAGP on its training trials from them),
+        on ``jobs`` processes (default the study's; 1: in this process); ``store``: see ``run_study``."""
+        cfg, index, names = self.cfg, self.index, self.names
+        jobs = jobs or self.jobs
+        log.info("baselines: evaluating grids on all trials (each fold picks its TAGP on its training trials)")
+        t0 = time.perf_counter()
+        self.grids = {"9d": _baseline_grids(index, names, cfg.baselines, True, jobs, store),
+                      "6d": (_baseline_grids(index, names, cfg.baselines_6d, False, jobs, store)
+                             if "6d" in cfg.ablations else {}),
+                      "rest_bias": {}}
+        if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
+            self.grids["rest_bias"]["madgwick_rest_bias"] = _rest_bias_grid(cfg.baselines["madgwick"], self.loaded,
+                                                                            names)
+        self.timing["baseline_grids_s"] = time.perf_counter() - t0
+
+    def finish(self, done: dict, folds_s: float | None = None) -> dict:
+        """The report from the folds' results ``done``; ``folds_s``: their wall time, when they ran alone."""
+        if folds_s is not None:
+            self.timing["folds_s"] = folds_s
+        loaded, names = self.loaded, self.names
+        rows, fold_info = [], []
+        series = {n: {} for n in names}  # per-sample total error [deg] for the plots
+        timelines = {}
+        for k, test in enumerate(self.folds):
+            fold = done[(self.label, k)]
+            info, train = fold["info"], fold["info"]["train"]
+            rows += fold["rows"] + _baseline_rows(self.grids["9d"], train, test, k, info)
+            for n in test:
+                series[n].update(fold["series"][n])
+                series[n].update({f: _errors_series(run_filter(loaded[n], FilterSpec(f, p))[0].quat, loaded[n])
+                                  for f, p in _chosen(info, PLOTTED_BASELINES)})
+            timelines.update(fold["timelines"])
+            rows += (_baseline_rows(self.grids["rest_bias"], train, test, k, {})
+                     + _baseline_rows(self.grids["6d"], train, test, k, {}, "_6d"))
+            fold_info.append(info)
+        rows += _default_rows(loaded, names, "6d" in self.cfg.ablations, series)
+
+        self.timing["total_s"] = time.perf_counter() - self.t_start
+        result = {"rows": rows, "folds": fold_info, "timing": self.timing, "trials": names,
+                  "missing": self.index.missing, "fold_seed": self.cfg.fold_seed, "groups": self.index.groups,
+                  "code": source_revision()}
+        write_report(self.out, result, series, timelines, loaded)
+        log.info(f"study done in {self.timing['total_s']:.0f} s; report in {self.out}/")
+        return result
+
+
+def plan_study(config: StudyConfig | None = None, data_dir=None, out_dir="reports/study", trials=None) -> StudyPlan:
+    """The study up to its folds and grids (``run_study``'s arguments): the trials loaded, the folds made."""
     cfg = config or load_study_config()
     jobs = cfg.jobs or os.cpu_count() or 1
-    out = Path(out_dir)
     t_start = time.perf_counter()
     index = open_index(data_dir or load_config(cfg.train_config)["run"]["data"] or None)  # --data > [run] data
     names = index.select(trials)
     log.info(index.summary())
     folds = trial_folds(names, cfg.folds, cfg.fold_seed)
-    job = _FoldJob(cfg, _fold_train_config(cfg), data_location(index), tuple(names), out, jobs, configured_level())
+    job = _FoldJob(cfg, _fold_train_config(cfg), data_location(index), tuple(names), Path(out_dir), jobs,
+                   configured_level())
     loaded = _trials(job.root, names)
-    timing = {}
-
-    log.info("baselines: evaluating grids on all trials (each fold picks its TAGP on its training trials)")
-    t0 = time.perf_counter()
-    grids9 = _baseline_grids(index, names, cfg.baselines, True, jobs, store)
-    grids6 = _baseline_grids(index, names, cfg.baselines_6d, False, jobs, store) if "6d" in cfg.ablations else {}
-    grids9r = {}
-    if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
-        grids9r["madgwick_rest_bias"] = _rest_bias_grid(cfg.baselines["madgwick"], loaded, names)
-    timing["baseline_grids_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    # forkserver: a fold trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
-    done = _run_folds(job, folds, backend or LocalBackend(min(jobs, len(folds)), start_method="forkserver"))
-    timing["folds_s"] = time.perf_counter() - t0
-    rows, fold_info = [], []
-    series = {n: {} for n in names}  # per-sample total error [deg] for the plots
-    timelines = {}
-    for k, test in enumerate(folds):
-        fold = done[k]
-        info, train = fold["info"], fold["info"]["train"]
-        rows += fold["rows"] + _baseline_rows(grids9, train, test, k, info)
-        for n in test:
-            series[n].update(fold["series"][n])
-            series[n].update({f: _errors_series(run_filter(loaded[n], FilterSpec(f, p))[0].quat, loaded[n])
-                              for f, p in _chosen(info, PLOTTED_BASELINES)})
-        timelines.update(fold["timelines"])
-        rows += _baseline_rows(grids9r, train, test, k, {}) + _baseline_rows(grids6, train, test, k, {}, "_6d")
-        fold_info.append(info)
-    rows += _default_rows(loaded, names, "6d" in cfg.ablations, series)
-
-    timing["total_s"] = time.perf_counter() - t_start
-    result = {"rows": rows, "folds": fold_info, "timing": timing, "trials": names, "missing": index.missing,
-              "fold_seed": cfg.fold_seed, "groups": index.groups, "code": source_revision()}
-    write_report(out, result, series, timelines, loaded)
-    log.info(f"study done in {timing['total_s']:.0f} s; report in {out}/")
-    return result
+    return StudyPlan(cfg, job, names, folds, loaded, index, Path(out_dir), {}, t_start)
 
 
 def _fold_train_config(cfg: StudyConfig) -> dict:
@@ -309,17 +358,6 @@ def _fold_train_config(cfg: StudyConfig) -> dict:
     train_cfg["gains"].update(learn=True, modes=(["9d", "6d", "vqf_9d", "vqf_6d"] if six_d else ["9d", "vqf_9d"]))
     train_cfg["run"]["cv_folds"] = cfg.inner_folds
     return train_cfg
-
-
-def _run_folds(job: _FoldJob, folds, backend) -> dict:
-    """fold index -> ``_run_fold``'s result, the folds run as tasks on ``backend``; a failed fold raises."""
-    tasks = [(k, (job, k, test)) for k, test in enumerate(folds)]
-    done = {}
-    for outcome in backend.run(_run_fold, tasks, desc="study folds", unit="fold"):
-        if outcome.error is not None:
-            raise outcome.error
-        done[outcome.key] = outcome.value
-    return done
 
 
 def _run_fold(job: _FoldJob, k: int, test: list) -> dict:

@@ -253,11 +253,12 @@ def _extras_in_pyproject() -> dict:
 
 def test_every_extra_installs_what_its_commands_check():
     py = _extras_in_pyproject()
-    assert set(py) == set(EXTRAS) | {"all", "dev"}
+    assert set(py) == set(EXTRAS) | {"all", "dev", "run"}
     for extra, mods in EXTRAS.items():
         assert set(mods) <= py[extra], (extra, set(mods) - py[extra])
     assert py["all"] == set().union(*(py[e] for e in EXTRAS))
     assert py["all"] <= py["dev"]  # the tests need everything (make venv installs .[dev])
+    assert py["run"] == py["train"] | py["plot"] | py["vqf"]  # make run: training, the figures, VQF
     core = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert sorted(r.split(">")[0] for r in core) == ["h5py", "numba", "numpy", "scipy"]
 

@@ -105,7 +105,7 @@ class PrunePoint:
 DEFAULT_EXPORT_POINT = PrunePoint(10, 4, 10, 4, 0)
 
 #: The default point's sizes [bytes] measured in the feature-version-3 sweep (``docs/results/sweep.md``)
-#: of the models trained on all 25 BROAD trials with the default config (``make run``'s
+#: of the models trained on all 25 BROAD trials with the default config (``pipelines/main.py --full``'s
 #: ``build/transfer/models_broad``; rv32imc ``-Os`` and host): a budget below them cannot be met
 #: without a sweep.
 DEFAULT_EXPORT_SIZES = {"array_riscv_bytes": 17704, "tl2cgen_riscv_bytes": 59770,

@@ -6,7 +6,7 @@ cross-dataset protocol.
    the gains on the training trials, evaluate the learned filters and all baselines on the
    held-out trials; writes reports/study/ (summary.md, tables, plots). With ``--full`` the study
    also runs its ablations (the config's ``[study] ablations``: most learn gains or models again;
-   and the 6D rows), which more than double its time; the rows both have are the same numbers.
+   and the 6D rows), which lengthens it; the rows both have are the same numbers.
 2. Rate: the same held-out trials 3x decimated (95.2 Hz), each scored with the models of the fold
    that held it out -> reports/transfer/rate.md.
 3. With ``--full``, when the phone data (BROAD layout; ``$TOGGLECF_PHONE_DATA``, else ``tyrex_nexus5``

@@ -1,6 +1,6 @@
 """(Re)write the generated result tables of the documentation, ``docs/results/*.md``, from run outputs.
 
-    python pipelines/regenerate_docs.py [--study reports/study] [--bench [--quick]] [--bench-dask]
+    python pipelines/regenerate_docs.py [--runs .] [--study reports/study] [--bench [--quick]] [--bench-dask]
                                         [--sweep build/embedded/default/sweep] [--export build/embedded/default]
                                         [--models models/default]
                                         [--lodo reports/lodo] [--out docs/results]
@@ -8,6 +8,10 @@
 No number in the documentation is typed by hand: the pages include these files with
 ``pymdownx.snippets`` (``--8<-- "docs/results/study_summary.md"``). Each file starts with a line
 saying which command wrote it and from which run (path, date, trials).
+
+The run outputs are looked for in the folder ``--runs`` (default: the repository, where ``make run`` and
+``togglecf train`` write them): each source's default below is relative to it. The tests point it at a
+folder of their own, so what an earlier ``make run`` left in the checkout never changes their result.
 
 What each source writes (a source that is absent leaves the existing files untouched, or writes a
 placeholder saying how to produce it when there is no file yet):
@@ -472,6 +476,9 @@ def filter_defaults(out: Path, command: str) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", default=str(REPO), metavar="DIR",
+                   help="the folder whose reports/, build/ and models/ hold the run outputs: every source's "
+                        "default is under it (default: the repository)")
     p.add_argument("--study", default=None, metavar="DIR", help="study output (default: reports/study if present)")
     p.add_argument("--bench", action="store_true", help="run the benchmarks and capture their tables")
     p.add_argument("--quick", action="store_true", help="with --bench: the benchmarks' quick modes")
@@ -492,8 +499,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
+    runs = Path(args.runs)
 
-    study = Path(args.study) if args.study else REPO / "reports" / "study"
+    study = Path(args.study) if args.study else runs / "reports" / "study"
     if (study / "results.json").is_file():
         study_tables(study, out, " ".join([SCRIPT, "--study", _shown(study) if args.study else "reports/study"]))
     else:
@@ -504,14 +512,14 @@ def main(argv=None) -> int:
             placeholder(out, name, "The study output `reports/study/results.json`",
                         f"Run `make run`, then `{SCRIPT}`.")
 
-    transfer = Path(args.transfer) if args.transfer else REPO / "reports" / "transfer"
+    transfer = Path(args.transfer) if args.transfer else runs / "reports" / "transfer"
     if transfer.is_dir():
         transfer_tables(transfer, study, transfer.parent / "study_both", out,
                         f"{SCRIPT} --transfer {_shown(transfer) if args.transfer else 'reports/transfer'}")
     elif args.transfer:
         p.error(f"{transfer}: not found (run `make run`)")
 
-    lodo = Path(args.lodo) if args.lodo else REPO / "reports" / "lodo"
+    lodo = Path(args.lodo) if args.lodo else runs / "reports" / "lodo"
     if (lodo / "lodo.md").is_file():
         write(out, "lodo.md", (lodo / "lodo.md").read_text())
     else:
@@ -523,7 +531,7 @@ def main(argv=None) -> int:
         dirs = [Path(d) for d in args.spread.split(",") if d]
         spread_table(dirs, out, f"{SCRIPT} --spread {args.spread}")
 
-    models = Path(args.models) if args.models else REPO / "models" / "default"
+    models = Path(args.models) if args.models else runs / "models" / "default"
     if (models / "cv_table.txt").is_file() and (models / "metadata.json").is_file():
         train_cv(models, out, f"{SCRIPT} --models {_shown(models)}")
     else:
@@ -532,7 +540,7 @@ def main(argv=None) -> int:
         placeholder(out, "train_cv.md", "A trained model directory `models/default`",
                     f"Run `togglecf train`, then `{SCRIPT} --models models/default`.")
 
-    sweep = Path(args.sweep) if args.sweep else REPO / "build" / "embedded" / "default" / "sweep"
+    sweep = Path(args.sweep) if args.sweep else runs / "build" / "embedded" / "default" / "sweep"
     if (sweep / "sweep.csv").is_file():
         sweep_tables(sweep, out, f"{SCRIPT} --sweep {_shown(sweep)}")
     else:
@@ -542,7 +550,7 @@ def main(argv=None) -> int:
                f"`python pipelines/export_embedded.py`), then `{SCRIPT} --sweep build/embedded/default/sweep`.")
         placeholder(out, "sweep.md", "The pruning sweep `build/embedded/default/sweep/sweep.csv`", how)
 
-    export = Path(args.export) if args.export else REPO / "build" / "embedded" / "default"
+    export = Path(args.export) if args.export else runs / "build" / "embedded" / "default"
     report = export / "filter" / "filter_report.json"
     if report.is_file():
         embedded_sizes(report, out, f"{SCRIPT} --export {_shown(export)}")

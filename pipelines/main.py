@@ -23,6 +23,11 @@ cross-dataset protocol.
    (learned_vqf.npz, MODEL_CARD.md); ``python pipelines/ship_pretrained.py`` puts them in the package
    when every check passed, and says whether the package's copy was the same.
 
+6. With ``--full``, your sensor, measured: on each dataset alone (folds within it), the learned VQF
+   re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
+   training recordings, against VQF at its defaults and tuned on the same recordings
+   (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md.
+
 Computed once, on one pool: the baseline grids of step 1 and Madgwick's grid of step 4 run first
 (their results are kept in build/cache/, keyed on the package's source and each trial file, and
 shared by the steps, so a trial's grid is never computed twice); then the study's folds, the
@@ -34,7 +39,7 @@ instead of each compiling them at once. The gain searches reuse an evaluation th
 (``toggling.gains.EvaluationMemo``). Each step's wall time is logged, and all of them at the end.
 
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
-    python pipelines/main.py --full            # + the study's ablations, step 3: what every table in
+    python pipelines/main.py --full            # + the study's ablations, steps 3 and 6: what every table in
                                                #   docs/results comes from
     python pipelines/main.py --lodo-only       # steps 4 and 5 alone
     python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
@@ -59,6 +64,7 @@ from togglecf.data.download import download_broad
 from togglecf.parallel.backend import BackendError, LocalBackend, Task, make_backend, run_tasks
 from togglecf.run.config import load_config
 from togglecf.run.lodo import dataset_dirs, lodo_json, lodo_table, plan_lodo
+from togglecf.run.per_sensor import base_models, per_sensor, per_sensor_json, per_sensor_table
 from togglecf.run.pretrained import train_pretrained_models, write_pretrained
 from togglecf.run.study import load_study_config, plan_study, run_study
 from togglecf.run.sweep import ResultStore
@@ -72,6 +78,8 @@ TRANSFER_DIR = Path("reports/transfer")
 BOTH_DIR = Path("reports/study_both")
 LODO_DIR = Path("reports/lodo")
 PRETRAINED_DIR = Path("reports/pretrained")
+PER_SENSOR_DIR = Path("reports/per_sensor")
+LODO_BUILD_DIR = Path("build/lodo")
 CACHE_DIR = Path("build/cache")
 log = logging.getLogger("togglecf.main")
 
@@ -129,8 +137,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--skip-study", action="store_true", help="use the existing reports/study (steps 2-5 only)")
-    p.add_argument("--full", action="store_true", help="also the study's ablations, the sensor transfer and the "
-                   "two-dataset study: every table of docs/results (the ablations learn gains and models again)")
+    p.add_argument("--full", action="store_true", help="also the study's ablations, the sensor transfer, the "
+                   "two-dataset study and the per-sensor re-learning: every table of docs/results (the ablations "
+                   "learn gains and models again)")
     p.add_argument("--lodo-only", action="store_true", help="steps 4 and 5 alone: leave one dataset out, pretrained")
     p.add_argument("--pretrained-only", action="store_true", help="step 5 alone (on an existing reports/lodo)")
     p.add_argument("--backend", choices=BACKENDS, default="local",
@@ -179,6 +188,8 @@ def main(argv=None) -> int:
         if lodo is not None:
             write_lodo(lodo.finish(done), lodo.dirs, command)
         pretrained(broad, trained=True)
+        if args.full and lodo is not None:
+            each_sensor(lodo.dirs, command, store)
     log.info("make run: " + ", ".join(f"{k} {v / 60:.1f}" for k, v in STEP_TIMES.items())
              + f"; total {(time.perf_counter() - t0) / 60:.1f} min")
     return 0
@@ -231,7 +242,7 @@ def plan_datasets_out(broad: Path, store: ResultStore):
     cfg = load_config()
     cfg["gains"]["modes"] = ["9d", "vqf_9d"]
     with step("leave-one-dataset-out grids"):
-        return plan_lodo(dirs, Path("build/lodo"), cfg, store=store)
+        return plan_lodo(dirs, LODO_BUILD_DIR, cfg, store=store)
 
 
 def write_lodo(results: dict, dirs, command: str) -> None:
@@ -240,6 +251,19 @@ def write_lodo(results: dict, dirs, command: str) -> None:
     text = lodo_table(results, dirs, command)
     atomic_write_text(LODO_DIR / "lodo.md", text)
     atomic_write_json(LODO_DIR / "lodo.json", lodo_json(results))
+    print(text)
+
+
+def each_sensor(dirs, command: str, store: ResultStore) -> None:
+    """Step 6 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
+    datasets' models of step 4 (``run.per_sensor``) -> reports/per_sensor."""
+    with step("per sensor"):
+        out = Path("build/per_sensor")
+        results = per_sensor(dirs, out, base_models(dirs, LODO_BUILD_DIR, out), store=store)
+    PER_SENSOR_DIR.mkdir(parents=True, exist_ok=True)
+    text = per_sensor_table(results, dirs, command)
+    atomic_write_text(PER_SENSOR_DIR / "per_sensor.md", text)
+    atomic_write_json(PER_SENSOR_DIR / "per_sensor.json", per_sensor_json(results))
     print(text)
 
 

@@ -226,7 +226,8 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=None, verbose: bool = True) -> dict:
+def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=None, verbose: bool = True,
+                      modes=None) -> dict:
     """``togglecf train --from-pretrained``: re-learn only the learned VQF's settings (9D and 6D, the
     modes the pretrained model has) on the selected trials, keeping the pretrained forest as it is.
 
@@ -242,7 +243,8 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
 
     Writes ``out/learned_vqf.npz`` (``learn.portable``, the format of the shipped model; ``out``
     default ``models/<run.name>-retuned``) with metadata naming the model it was re-tuned from and
-    the trials. Returns ``{"path", "modes": {mode: objectives, kept, history}, "timing_s"}``."""
+    the trials; ``modes``: the modes to re-learn (default: every one the model has; the others keep the
+    model's settings). Returns ``{"path", "modes": {mode: objectives, kept, history}, "timing_s"}``."""
     t_start = time.perf_counter()
     cfg = load_config(config)
     run = cfg["run"]
@@ -253,7 +255,9 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
         raise ValueError("togglecf train --from-pretrained: no trial selected")
     source_path = Path(model) if model is not None else PRETRAINED_FILE
     pm = load_pretrained(source_path)
-    modes = [m for m in VQF_MODES if m in pm.gains]
+    modes = [m for m in VQF_MODES if m in pm.gains and (modes is None or m in modes)]
+    if not modes:
+        raise ValueError(f"{source_path.name} has no settings of the modes to re-learn ({', '.join(VQF_MODES)})")
     out_dir = Path(out) if out else Path("models") / f"{run['name']}-retuned"
     say = log.info if verbose else (lambda msg: None)
     say(f"togglecf train --from-pretrained: {len(names)} trials, the models of {source_path.name} kept; "

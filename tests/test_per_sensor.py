@@ -1,0 +1,115 @@
+"""Your sensor, measured (togglecf.run.per_sensor, pipelines/per_sensor.py): folds within one dataset,
+VQF tuned on the same recordings, the learned VQF re-learned and trained from scratch on them."""
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from togglecf.learn.folds import trial_folds
+from togglecf.registry import FilterSpec
+from togglecf.run.config import load_config
+from togglecf.run.per_sensor import (ROWS, PerSensorConfig, per_sensor, per_sensor_json, per_sensor_table,
+                                     training_subsets)
+from togglecf.run.scoring import score_trial
+from togglecf.run.train import run_training
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+#: a small τ_acc × τ_mag grid [s] with VQF's defaults (3, 9) on it
+GRID = {"tau_acc": [1.0, 3.0], "tau_mag": [9.0, 30.0]}
+#: tiny models; every learned VQF value at the core's: learning off, whatever the models predict
+TINY_LEARNING_OFF = {
+    "run": {"cv_folds": 2},
+    "classifier": {"n_estimators": 8, "max_depth": 3},
+    "regressor": {"n_estimators": 4, "max_depth": 3},
+}
+VQF_OFF = {"tau_acc": [3.0], "tau_mag": [9.0], "confidence_floor": [0.0], "mag_disturbance_scale": [0.0]}
+
+
+def test_training_subsets_are_nested_seeded_and_refuse_one():
+    train = [f"t{i:02d}" for i in range(10)]
+    a = training_subsets(train, (2, 4, 8, 0), seed=3)
+    assert set(a) == {2, 4, 8, 0} and a[0] == a[0] and len(a[0]) == 10 and sorted(a[0]) == train
+    assert a[2] == a[4][:2] and a[4] == a[8][:4] and a[8] == a[0][:8]  # nested: each the start of the next
+    assert training_subsets(train, (2, 4), seed=3) == {2: a[2], 4: a[4]}  # the same shuffle for a seed
+    assert training_subsets(train, (4,), seed=4)[4] != a[4]  # another seed, another draw (10 choose 4 orders)
+    assert set(training_subsets(train[:3], (2, 8))) == {2, 0}  # 8 of 3: all of them
+    with pytest.raises(ValueError, match="at least 2"):
+        training_subsets(train, (1,))
+
+
+def test_vqf_grid_keeps_the_defaults_on_the_grid():
+    grid = PerSensorConfig(grid={"tau_acc": [1.0, 6.0], "tau_mag": [5.0]}).vqf_grid()
+    assert grid == {"tau_acc": [1.0, 3.0, 6.0], "tau_mag": [5.0, 9.0]}
+
+
+@pytest.fixture(scope="module")
+def learning_off(mini_index, tmp_path_factory):
+    """The protocol on the mini trials (one dataset, 3 folds of one trial, 2 training recordings) with
+    every learned VQF value at the core's, from a base trained with learning off."""
+    tmp = tmp_path_factory.mktemp("per_sensor")
+    cfg = load_config()
+    for section, values in TINY_LEARNING_OFF.items():
+        cfg[section].update(values)
+    cfg["gains"]["modes"] = ["vqf_9d"]
+    cfg["gains"]["vqf"] = {**cfg["gains"]["vqf"], **VQF_OFF}
+    base = tmp / "base"
+    run_training(cfg, data_dir=mini_index.root, out=base, verbose=False)
+    settings = PerSensorConfig(folds=3, sizes=(2,), scratch_sizes=(2,), grid=GRID)
+    results = per_sensor([mini_index.root], tmp / "out", {Path(mini_index.root).name: base}, settings, config=cfg,
+                         jobs=1)
+    return results[Path(mini_index.root).name], settings
+
+
+@pytest.mark.slow
+def test_learning_off_is_vqf_and_tuning_sees_only_the_training_recordings(learning_off, mini_index):
+    plan, settings = learning_off
+    names = mini_index.select(None)
+    assert plan["folds"] == trial_folds(names, 3, 0)
+    rows = plan["sizes"][0]  # 2 of 2 training recordings: all of them
+    assert set(rows) == set(ROWS) and all(sorted(rows[r]) == sorted(names) for r in ROWS)
+    for n in names:  # learning off: the learned VQF is its core at VQF's defaults, re-learned or from scratch
+        for r in ("relearned", "scratch"):
+            assert abs(rows[r][n]["total"] - rows["vqf_defaults"][n]["total"]) < 1e-6, (r, n)
+    # VQF's defaults scored directly; the tuned pair of each fold is the grid's best on its training trials alone
+    for k, test in enumerate(plan["folds"]):
+        train = [n for n in names if n not in test]
+        by_point = {(a, m): np.mean([score_trial(mini_index.load(n), FilterSpec("vqf_core", {"tau_acc": a,
+                                                                                            "tau_mag": m}))[0]
+                                     .errors["total"] for n in train])
+                    for a in GRID["tau_acc"] for m in GRID["tau_mag"]}
+        best = min(by_point, key=by_point.get)
+        assert plan["tuned"][0][k] == {"tau_acc": best[0], "tau_mag": best[1]}
+        for n in test:
+            tuned = score_trial(mini_index.load(n), FilterSpec("vqf_core", dict(zip(GRID, best))))[0]
+            assert rows["vqf_tuned"][n]["total"] == pytest.approx(tuned.errors["total"], abs=1e-9)
+            default = score_trial(mini_index.load(n), FilterSpec("vqf_core"))[0]
+            assert rows["vqf_defaults"][n]["total"] == pytest.approx(default.errors["total"], abs=1e-9)
+
+
+@pytest.mark.slow
+def test_table_and_json(learning_off, mini_index):
+    plan, _ = learning_off
+    name = Path(mini_index.root).name
+    text = per_sensor_table({name: plan}, [mini_index.root], "python pipelines/per_sensor.py --x")
+    assert text.startswith("*Generated by `python pipelines/per_sensor.py --x`")
+    line = next(ln for ln in text.splitlines() if ln.startswith("| all |"))
+    assert "+0.0 % · 0/3/0" in line  # re-learned vs defaults: three ties (learning off)
+    doc = json.loads(json.dumps(per_sensor_json({name: plan})))
+    n = plan["folds"][0][0]
+    assert doc[name]["sizes"]["0"]["relearned"][n]["total"] == plan["sizes"][0]["relearned"][n]["total"]
+
+
+def test_script_says_what_is_missing(tmp_path, capsys):
+    sys.path.insert(0, str(PIPELINES))
+    try:
+        import per_sensor as script
+    finally:
+        sys.path.remove(str(PIPELINES))
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--data", str(tmp_path / "nowhere")])
+    assert exc.value.code == 2 and "no trials.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main(["--sizes", "1,all"])
+    assert "a whole number of recordings >= 2" in capsys.readouterr().err

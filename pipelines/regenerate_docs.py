@@ -3,7 +3,8 @@
     python pipelines/regenerate_docs.py [--runs .] [--study reports/study] [--bench [--quick]] [--bench-dask]
                                         [--sweep build/embedded/default/sweep] [--export build/embedded/default]
                                         [--models models/default]
-                                        [--lodo reports/lodo] [--out docs/results]
+                                        [--lodo reports/lodo] [--per-sensor reports/per_sensor]
+                                        [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
 ``pymdownx.snippets`` (``--8<-- "docs/results/study_summary.md"``). Each file starts with a line
@@ -32,6 +33,11 @@ placeholder saying how to produce it when there is no file yet):
   read: ``filter/filter_report.json``): ``embedded_sizes.md``.
 * ``--models DIR`` (default ``models/default``; read: ``cv_table.txt``): ``train_cv.md``.
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
+* ``--per-sensor DIR`` (default ``reports/per_sensor``, the per-sensor step of ``main.py --full`` or
+  ``pipelines/per_sensor.py``): ``per_sensor.md``.
+
+The tables a pipeline writes with its own header (``lodo.md``, ``per_sensor.md``, the transfer tables)
+are copied as they are (``RUN_TABLES``): their first line names the command that made them.
 * always: ``filter_defaults.md``, every filter's settings and defaults, from the code; and (with
   the default ``--out``) the figures of the docs that a command draws (``DOC_FIGURES``, e.g.
   ``docs/euler_05.png`` by ``togglecf plot euler``), when BROAD is found.
@@ -50,6 +56,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -472,6 +479,39 @@ def filter_defaults(out: Path, command: str) -> None:
           + md_table(["CLI name", "class", "settings", "defaults"], rows))
 
 
+# --------------------------------------------------------------------------------------------- run tables
+class RunTable(NamedTuple):
+    """A table a pipeline writes with its own header, copied as it is: option ``--<option>`` names the
+    folder (default ``folder``, under ``--runs``) that holds ``name``; ``what`` it is, ``how`` to make it."""
+
+    option: str
+    folder: str
+    name: str
+    what: str
+    how: str
+
+
+RUN_TABLES = (
+    RunTable("lodo", "reports/lodo", "lodo.md", "the leave-one-dataset-out output of `make run`",
+             "Run `make run` with the phone data beside BROAD."),
+    RunTable("per_sensor", "reports/per_sensor", "per_sensor.md",
+             "the per-sensor output of `python pipelines/main.py --full` or `pipelines/per_sensor.py`",
+             "Run `python pipelines/per_sensor.py` (or `python pipelines/main.py --full`)."),
+)
+
+
+def copy_run_table(table: RunTable, given, runs: Path, out: Path, parser) -> None:
+    """Copy ``table`` from the folder ``given`` (an option's value) or its default under ``runs``; a
+    missing default leaves a placeholder, a missing given folder is an error."""
+    folder = Path(given) if given else runs / table.folder
+    if (folder / table.name).is_file():
+        write(out, table.name, (folder / table.name).read_text())
+    elif given:
+        parser.error(f"{folder}: no {table.name} ({table.how})")
+    else:
+        placeholder(out, table.name, f"`{table.folder}/{table.name}`", table.how)
+
+
 # --------------------------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
@@ -494,8 +534,9 @@ def main(argv=None) -> int:
     p.add_argument("--transfer", default=None, metavar="DIR",
                    help="the cross-dataset outputs of `make run` (default: reports/transfer if present; with "
                         "reports/study_both)")
-    p.add_argument("--lodo", default=None, metavar="DIR",
-                   help="the leave-one-dataset-out output of `make run` (default: reports/lodo if present)")
+    for table in RUN_TABLES:
+        p.add_argument(f"--{table.option.replace('_', '-')}", default=None, metavar="DIR",
+                       help=f"{table.what} (default: {table.folder} if present)")
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -519,13 +560,8 @@ def main(argv=None) -> int:
     elif args.transfer:
         p.error(f"{transfer}: not found (run `make run`)")
 
-    lodo = Path(args.lodo) if args.lodo else runs / "reports" / "lodo"
-    if (lodo / "lodo.md").is_file():
-        write(out, "lodo.md", (lodo / "lodo.md").read_text())
-    else:
-        if args.lodo:
-            p.error(f"{lodo}: no lodo.md (run `make run` with at least two datasets in BROAD's layout)")
-        placeholder(out, "lodo.md", "`reports/lodo/lodo.md`", "Run `make run` with the phone data beside BROAD.")
+    for table in RUN_TABLES:
+        copy_run_table(table, getattr(args, table.option), runs, out, p)
 
     if args.spread:
         dirs = [Path(d) for d in args.spread.split(",") if d]

@@ -18,8 +18,8 @@ def _git(args, cwd) -> str | None:
 
 
 def source_revision(path=None) -> str:
-    """The code a run used: ``"commit 1a2b3c4"`` for a git checkout of the package (``path``: the
-    checkout, default the package's own directory), ``"commit 1a2b3c4 with uncommitted changes"``
+    """The code a run used: ``"commit <hash>"`` (7 hex digits) for a git checkout of the package
+    (``path``: the checkout, default the package's own directory), ``"commit <hash> with uncommitted changes"``
     when tracked files differ from it, else ``"togglecf <version>"`` (an installed wheel)."""
     where = Path(path) if path is not None else Path(__file__).resolve().parent
     commit = _git(["rev-parse", "--short=7", "HEAD"], where)

@@ -1,4 +1,4 @@
-"""The toggling filter as a self-contained C99 source set (issue 6, "C implementation").
+"""The toggling filter as a self-contained C99 source set.
 
 ``export_c_filter(model_dir, out_dir, fs=None, use_mag=True, max_fs=400)`` writes into ``out_dir``
 (e.g. ``build/embedded/NAME/filter/``) a rate-free filter, as the learned VQF's export

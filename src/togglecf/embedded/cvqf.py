@@ -1,5 +1,4 @@
-"""The VQF-class core filter (``togglecf.filters.vqf_core``) as a self-contained C99 source set
-(issue 13, part 5).
+"""The VQF-class core filter (``togglecf.filters.vqf_core``) as a self-contained C99 source set.
 
 ``export_c_vqf(out_dir, fs, settings=None, use_mag=True)`` writes into ``out_dir``:
 

@@ -1,5 +1,5 @@
 """The VQF core with learned time constants (``togglecf.toggling.inloop.ModelVQFTogglingFilter``)
-as a self-contained C99 source set (issue 13, item 5).
+as a self-contained C99 source set.
 
 ``export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag=True, max_fs=400)`` writes into ``out_dir`` a
 rate-free filter: ``tcf_vqft_init(&f, fs)`` takes the rate (up to ``TCF_MAX_FS``) and derives every

@@ -1,4 +1,4 @@
-"""Embedded export of a trained model bundle as C code (issue 6, first part).
+"""Embedded export of a trained model bundle as C code.
 
 Two formats, each checked against the Python reference before it is reported as exported:
 

@@ -1,4 +1,4 @@
-"""An exported C filter as an Arduino / PlatformIO library (issue 25): the folder layout both
+"""An exported C filter as an Arduino / PlatformIO library: the folder layout both
 tools read, written by ``cvqf_toggling.export_c_vqf_toggling`` into ``<out_dir>/arduino/<name>/``::
 
     <name>/

@@ -88,8 +88,8 @@ static void mag_reference_update(tcf_features_t *f, float mn, float dip, float g
 
 /* Append one sample's channels (push_sample; definitions in togglecf.features). Ring columns:
    0-2 gyr, 3 |gyr|, 4-6 acc, 7 |acc| - g, 8 jerk, 9 mag_norm_dev, 10 dip_dev, 11 |gyr|^2
-   (gyr_energy). The magnetometer enters only relative to its own reference (feature version 2 on;
-   the gated reference of version 3). */
+   (gyr_energy). The magnetometer enters only relative to its own gated reference of the undisturbed
+   field (never as raw components or norm; togglecf.features.windows). */
 static void tcf_push_sample(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   float *row = f->ring[f->pos];
   float gn2 = gyr[0] * gyr[0] + gyr[1] * gyr[1] + gyr[2] * gyr[2];

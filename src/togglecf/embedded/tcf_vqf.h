@@ -12,12 +12,10 @@
  * one tcf_vqf_t per sensor). The per-sample coefficients are derived from the settings and
  * Ts = 1/fs by tcf_vqf_init (float32, once; same formulas as VQFCoreFilter._coefficients)
  * and kept inside tcf_vqf_t, so rate and settings can be chosen at run time.
- * Measured (gcc 12, -Os): sizeof(tcf_vqf_t) = TCF_VQF_STATE_BYTES = 532 bytes; object code
- * of tcf_vqf.c + tcf_vqf_standalone.c 5472 B text on a Cortex-M4F (hard float), 9754 B on
- * rv32imc (soft float), 8889 B on x86-64 (tcf_vqf.c alone, as the learned filter links it:
- * 5172 B / 9320 B on M4F / rv32imc); stack of the deepest tcf_vqf_update call chain 488 B
- * (M4F) / 640 B (rv32imc), libm routines not counted (togglecf.embedded.cvqf.export_c_vqf
- * reports all of these).
+ * sizeof(tcf_vqf_t) = TCF_VQF_STATE_BYTES = 532 bytes. The object code of tcf_vqf.c (+
+ * tcf_vqf_standalone.c) on a Cortex-M4F (hard float), rv32imc (soft float) and the host, and the
+ * stack of the deepest tcf_vqf_update call chain (libm routines not counted), are measured and
+ * reported by togglecf.embedded.cvqf.export_c_vqf (vqf_report.json) for the compiler at hand.
  *
  * Low-pass filters: the second-order Butterworth LP_2 in the "delta" form of the Python filter
  * (vqf_core.LowPass, _lp_bank; state: output level v and increment dv, coefficients 4 b0 and beta = 1 - a2,

@@ -26,7 +26,7 @@ RISCV_FLAGS = ("-march=rv32imc", "-mabi=ilp32")
 
 ARM_GCC = "arm-none-eabi-gcc"
 ARM_SIZE = "arm-none-eabi-size"
-#: Cortex-M4F (issue 13): single-precision FPU, hard-float ABI, Thumb-2
+#: Cortex-M4F: single-precision FPU, hard-float ABI, Thumb-2
 ARM_FLAGS = ("-mcpu=cortex-m4", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard", "-mthumb")
 
 

@@ -53,7 +53,7 @@ assert WINDOW_CHANNELS == ("gyr_x", "gyr_y", "gyr_z", "gyr_norm", "acc_x", "acc_
 
 
 # inline: called once per sample from the filter loop (``toggling.inloop``), where a call of its own
-# (arguments unpacked, each array reference-counted) took as long as the work: 0.067 -> 0.033 µs/sample
+# (arguments unpacked, each array reference-counted) would cost as much as the work
 @njit(cache=True, inline="always")
 def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     """Append one sample's channels (definitions in ``togglecf.features.windows``)."""
@@ -116,7 +116,8 @@ def window_features(ring, aux, out):
     """Feature row of the window ending at the last pushed sample (needs ``L`` samples).
 
     Rows outer, channels inner (the ring is row-major; every channel still sums its samples in
-    ring order, so the values are those of a per-channel loop bit for bit; ~10 % faster)."""
+    ring order, so the values are those of a per-channel loop bit for bit, and memory is read in
+    order)."""
     L = ring.shape[0]
     nw = ring.shape[1] - 1
     acc = np.empty((4, nw))

@@ -12,7 +12,7 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
 * ``jerk = |a_k − a_{k−1}| · fs`` (0 at ``k = 0``)
 * ``mag_norm_dev = |m_k| − r_{k−1}`` and ``dip_dev = δ_k − d_{k−1}``, with the dip angle
   ``δ_k = asin(−(a_k·m_k)/(|a_k||m_k|))`` [rad] and a causal reference ``(r, d)`` of the field's
-  norm and dip that follows only an undisturbed field (``mag_reference_step``, version 3; VQF's
+  norm and dip that follows only an undisturbed field (``mag_reference_step``; VQF's
   magnetic reference logic, Laidig & Seel 2023, eqs. M2-M3, in the sensor frame):
 
   - sample ``k`` *agrees* with the reference when ``||m_k| − r| < ref_norm_th·r`` and
@@ -30,16 +30,18 @@ Per-sample channels (sample ``k``; ``a, m, ω`` = acc, mag, gyr; ``g = 9.81``):
     ``r_{−1} = |m_0|``, ``d_{−1} = δ_0``); the deviations before it are NaN, and an unusable
     sample later changes nothing.
 
-  Version 2 had a plain EMA (``ref_tau_s``) as the reference: within some ``ref_tau_s`` of the
-  start of a sustained disturbance it had followed it and the deviation was gone.
+  Why gated: a plain EMA as the reference would follow a sustained disturbance within some
+  ``ref_tau_s`` of its start, and the deviation would be gone.
 * ``acc_hp_x/y/z = a_k − p_{k−1}``, ``p`` the EMA of ``a`` with ``lp_tau_s`` (``p_{−1} = a_0``): the
   fast part of the specific force, a proxy for linear acceleration and vibration.
 
 The magnetometer enters only relative to its own causal reference (``mag_norm_dev``, ``dip_dev``),
-never as raw components or norm (version 2; version 1 had ``mag_x/y/z`` and ``mag_norm``): the
-field's strength (25–65 µT) and dip angle depend on where the sensor is, so a model that has seen
-them learns its training site's field and mistakes another site's undisturbed field for a
-disturbance (issue 12). A deviation from the reference means the same anywhere.
+never as raw components or norm: the field's strength (25–65 µT) and dip angle depend on where
+the sensor is, so a model that has seen them learns its training site's field and mistakes another
+site's undisturbed field for a disturbance. A deviation from the reference means the same anywhere.
+
+These definitions are ``FEATURE_VERSION``; models trained on features of another version are
+refused (``learn.compiled``), as no setting recomputes them.
 
 Non-finite input samples: a window that holds a non-finite value of a channel gives NaN
 statistics of that channel (missing values for the trees); the references hold over bad

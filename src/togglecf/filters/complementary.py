@@ -38,8 +38,8 @@ __all__ = ["CFSettings", "ComplementaryFilter"]
 class CFSettings(FilterSettings):
     """Attributes:
         tau: time constant [s] of the acc/mag correction (per-sample weight α = 1 − exp(−Ts/τ);
-            0: the acc/mag orientation alone, < 0: gyro only). Default 12.5 s: the former
-            per-sample default α = 0.00028 at BROAD's 285.714 Hz (τ = −Ts/ln(1 − α) = 12.498 s),
+            0: the acc/mag orientation alone, < 0: gyro only). Default 12.5 s: the
+            per-sample α = 0.00028 at BROAD's 285.714 Hz (τ = −Ts/ln(1 − α) = 12.498 s),
             the TAGP over the 25 BROAD trials in shared/ (9D; coarse grid α 0.00002..0.05, then
             0.0002:0.0004:0.00002; its errors: ``docs/results``). Long, because this IMU's gyro
             biases (0.2-0.5 °/s) and up to ~2 m/s² of linear acceleration pull in opposite

@@ -18,7 +18,7 @@ boundary: ``q_nwu = ENU_FROM_NWU* ⊗ q_enu`` on entry, the report's equations r
 rotation about the vertical). The sensor-frame inputs need no conversion.
 
 The widely copied MadgwickAHRS.c computes ``_2bx = √(h_x² + h_y²)``, i.e. a reference b half
-as long as eq. 46's (github.com/dlaidig/broad issue 1); BROAD's published Madgwick results
+as long as eq. 46's (https://github.com/dlaidig/broad/issues/1); BROAD's published Madgwick results
 come from that code. ``c_code_mag_step=True`` reproduces it for comparison; the default
 is the report.
 

@@ -42,8 +42,8 @@ AXES = ("x", "y", "z")
 #: 3 adds ``feature_ranges`` (``learn.ranges``: the training range of each feature and the fallback threshold)
 BUNDLE_FORMAT = 3
 
-# OpenMP threads that spin while waiting make XGBoost ~9x slower (measured: 6.8 s vs 0.8 s for
-# 20 trees) when the machine's cores are shared with other work; sleeping waits avoid that. Only
+# OpenMP threads that spin while waiting make XGBoost several times slower when the machine's cores
+# are shared with other work; sleeping waits avoid that. Only
 # effective if set before XGBoost's OpenMP runtime starts, hence at import of this module.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -1,4 +1,4 @@
-"""Feature training ranges and the out-of-range fallback (issue 12, items 2-3).
+"""Feature training ranges and the out-of-range fallback.
 
 At training, each feature's range over the training windows is stored in the model's
 ``metadata.json`` (``feature_ranges``: the ``RANGE_QUANTILES`` quantiles per feature, in the

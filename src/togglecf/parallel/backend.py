@@ -243,10 +243,10 @@ def tune_worker_malloc():
     """Undo the Dask nanny's ``MALLOC_TRIM_THRESHOLD_=65536`` for this worker process (glibc only).
 
     That setting also fixes glibc's mmap threshold at 128 KiB, so every trial-sized array is a fresh
-    ``mmap`` that is page-faulted in and unmapped again: measured here, a sweep task spent 5x more
-    system time, and ``bench_dask.py --workers 1`` took 88.8 s with it against 31.8 s without
-    (2.8x). A 32 MiB mmap threshold and a 256 MiB trim threshold give back the plain process's
-    speed (workers keep up to that much freed memory)."""
+    ``mmap`` that is page-faulted in and unmapped again, and a sweep task spends several times
+    longer in the kernel (``bench_dask.py --workers 1`` shows it). A 32 MiB mmap threshold and a
+    256 MiB trim threshold give back the plain process's speed (workers keep up to that much freed
+    memory)."""
     global _MALLOC_TUNED
     if _MALLOC_TUNED:
         return

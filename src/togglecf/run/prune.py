@@ -96,15 +96,16 @@ class PrunePoint:
 
 
 #: The pruned point ``togglecf export --max-bytes N`` uses when no sweep exists: 10 trees of depth 4
-#: per booster (classifier and regressors), all features. Provenance: the 19-point pruning sweep of
-#: ``models/default`` (25 BROAD trials, 5 held-out folds, inner 3-fold CV; ``togglecf prune``) chose
-#: it for ``--max-bytes 32768`` (the lowest held-out error within that budget) with feature version 1.
-#: The version-2 sweep (``docs/results/sweep.md``) picks 30 trees of depth 3 for the toggling CF, but
-#: the learned VQF filter's 9D C export (trees + VQF core in soft float) fits 32 KiB with this point
-#: only just, so it stays the default. It is not re-chosen per model: ``--full-sweep`` does that.
+#: per booster (classifier and regressors), all features. Why: the pruning sweep of ``models/default``
+#: (25 BROAD trials, 5 held-out folds, inner 3-fold CV; ``togglecf prune``) chose it for
+#: ``--max-bytes 32768`` (the lowest held-out error within that budget) on an earlier feature set; on
+#: the current features the sweep (``docs/results/sweep.md``) picks 30 trees of depth 3 for the
+#: toggling CF, but the learned VQF filter's 9D C export (trees + VQF core in soft float) fits 32 KiB
+#: with this point only just, so it stays the default. It is not re-chosen per model: ``--full-sweep``
+#: does that.
 DEFAULT_EXPORT_POINT = PrunePoint(10, 4, 10, 4, 0)
 
-#: The default point's sizes [bytes] measured in the feature-version-3 sweep (``docs/results/sweep.md``)
+#: The default point's sizes [bytes] measured in the pruning sweep of ``docs/results/sweep.md``
 #: of the models trained on all 25 BROAD trials with the default config (``pipelines/main.py --full``'s
 #: ``build/transfer/models_broad``; rv32imc ``-Os`` and host): a budget below them cannot be met
 #: without a sweep.

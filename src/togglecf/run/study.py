@@ -119,8 +119,9 @@ log = logging.getLogger(__name__)
 def without_initial_rest_bias(trial, min_rest_s: float = 1.0):
     """``trial`` with the gyro bias of its initial rest removed: the mean gyro reading before the
     first ``movement`` sample (BROAD's annotation), when that rest lasts at least ``min_rest_s``
-    (else unchanged). The bracket of BROAD's issue 2 for Madgwick: what a rest-bias calibration
-    at start-up gives a filter that does not estimate the bias itself."""
+    (else unchanged). The bracket for Madgwick raised on BROAD's tracker
+    (https://github.com/dlaidig/broad/issues/2): what a rest-bias calibration at start-up gives a
+    filter that does not estimate the bias itself."""
     moving = np.flatnonzero(trial.movement)
     n_rest = int(moving[0]) if moving.size else trial.n_samples
     if n_rest < min_rest_s * trial.fs:
@@ -446,7 +447,7 @@ def _chosen(info: dict, filters) -> list:
 
 
 def _rest_bias_grid(grid: dict, loaded: dict, names) -> tuple:
-    """BROAD issue 2's bracket: Madgwick's grid on the trials with their initial-rest gyro bias removed,
+    """The bracket of BROAD's tracker (``without_initial_rest_bias``): Madgwick's grid on the trials with their initial-rest gyro bias removed,
     as ``(params list, [trial -> TrialResult] per point)``."""
     keys = grid_points(grid)
     corrected = {n: without_initial_rest_bias(loaded[n]) for n in names}

@@ -1,4 +1,4 @@
-"""Does a trained filter travel? The cross-dataset protocol of the study (issue 12, item 5).
+"""Does a trained filter travel? The cross-dataset protocol of the study.
 
 * ``models_transfer(model_dir, index)``: one model directory (e.g. trained on all of BROAD) scored
   on every trial of another dataset (another sensor, rate and motions: the phone data).

@@ -14,7 +14,7 @@ heading offset removed):
   ties. No dataset can dominate: a change is kept only where it helps the dataset it helps least,
   and a trial counts by its relative change, so the datasets with the largest errors do not choose
   the values for everyone.
-* ``"mean_rmse"``: the mean total RMSE over all trials (the objective until issue 24).
+* ``"mean_rmse"``: the mean total RMSE over all trials (the trials with the largest errors weigh most).
 
 When a step is kept (``STEP_RULES``): ``"any_gain"`` keeps a candidate that lowers the objective at
 all (the toggling CF's search, which starts from moderate gains, not from a validated filter);
@@ -51,7 +51,7 @@ __all__ = ["GainSearch", "VQFGainSearch", "MODES", "OBJECTIVES", "STEP_RULES", "
 
 logger = logging.getLogger(__name__)
 
-#: s: the former per-sample grid (0, 0.00003, 0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02,
+#: s: the per-sample grid (0, 0.00003, 0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02,
 #: 0.05) at BROAD's 285.714 Hz as time constants (``timeconst.tau_from_gain``, 4 digits; −1 = off)
 _TAU_GRID = (-1.0, 116.7, 35.0, 17.5, 6.998, 3.498, 1.748, 0.6982, 0.3482, 0.1732, 0.06824)
 
@@ -137,7 +137,7 @@ def _search_from_dict(cls, d: dict, what: str):
 @dataclass(frozen=True)
 class GainSearch:
     """Grids of the coordinate descent (time constants in s, ``TogglingSettings``; σ_m in µT). The
-    defaults are the former per-sample grids at BROAD's 285.714 Hz as time constants.
+    defaults are round per-sample gains at BROAD's 285.714 Hz, written as time constants.
 
     Attributes:
         tau: grid of every per-state acc and mag time constant [s] (< 0: that correction off).
@@ -146,7 +146,7 @@ class GainSearch:
         bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
         mag_disturbance_scale: grid of σ_m (0 = off).
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise (default 0
-            only: a noise vector learned on one sensor does not belong in another's signal, issue 24).
+            only: a noise vector learned on one sensor does not belong in another's signal).
         confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
         sweeps: passes over all parameters.
         objective: what the descent minimises (``OBJECTIVES``, module docstring).
@@ -175,12 +175,10 @@ class GainSearch:
 
     def start(self, states, static_state) -> TogglingSettings:
         """Where the descent starts: moderate gains in every state (τ_acc 3.498 s, τ_mag 11.66 s,
-        bias 3.498 s: the former per-sample 0.001, 0.0003, 0.001 at 285.714 Hz) and the noise
+        bias 3.498 s: the per-sample gains 0.001, 0.0003, 0.001 at 285.714 Hz) and the noise
         regressors off (w_a = w_m = 0, σ_m = 0, no confidence floor), as the VQF search starts at
         learning off: a learned term is used only where it lowered the objective on the training
-        trials. (Until issue 12 the descent started with w_a = w_m = 1 and kept w_m = 1 because
-        neither 0 nor 0.5 did better at that point; the start was changed after a diagnosis on the
-        phone data showed that removal not travelling, see the issue's closing note.)"""
+        trials (a noise removal learned on BROAD did not travel to the phone data)."""
         n = len(states)
         return TogglingSettings(states=tuple(states), static_state=static_state, tau_acc=(3.498,) * n,
                                 tau_mag=(11.66,) * n, output_tau=0.0, bias_tau=3.498, noise_weight_acc=0.0,
@@ -210,7 +208,7 @@ class VQFGainSearch:
     σ_m [µT] of the heading gain (9D); the noise weights. The descent starts at the core's own
     settings (learning off), so on the training trials it can only improve on the core.
 
-    By default (issue 24) only what travels between sensors is learned: τ_acc per state and the
+    By default only what travels between sensors is learned: τ_acc per state and the
     heading back-off σ_m of a predicted disturbance (µT, of the predicted noise); τ_mag, the rest
     thresholds (m/s², °/s: properties of the sensor's noise) and the noise-vector weights
     (subtracting a noise vector learned on one sensor from another's signal) keep the core's
@@ -218,8 +216,8 @@ class VQFGainSearch:
 
     σ_motion's grid is the core's value alone (not learned) by default: it is the steady-state
     uncertainty of the gyro-bias estimate, a property of the gyroscope rather than of the motion,
-    and values learned per state on one sensor do not travel to another (issue 12; the measurement
-    is in docs/concepts/vqf-core.md). A grid of several values still learns it, for data of one
+    and values learned per state on one sensor do not travel to another (the measurement is in
+    docs/concepts/vqf-core.md). A grid of several values still learns it, for data of one
     sensor.
 
     σ_m's grid starts at 10 µT (a fifth of the Earth's field): a smaller σ_m backs off on the

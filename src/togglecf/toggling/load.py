@@ -13,7 +13,8 @@ from togglecf.toggling.inloop import InLoopModels, ModelTogglingFilter, ModelVQF
 
 __all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest", "training_trials_among"]
 
-#: content digest of a model directory -> its CompiledModels (flattening the trees takes ~1 s)
+#: content digest of a model directory -> its CompiledModels (flattening the trees costs far more than
+#: hashing the files)
 _COMPILED_CACHE: dict = {}
 
 

@@ -333,11 +333,10 @@ def add_export_parser(subparsers):
                     help="flash budget: train a pruned point on the model's training trials into OUT/models and "
                     "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "
                     "error whose RISC-V object code (array format; tl2cgen with --format tl2cgen) fits in N bytes, "
-                    "else the default point (togglecf.run.prune.DEFAULT_EXPORT_POINT, all features: the feature-v1 "
-                    "sweep's choice for 32 KB); minutes")
+                    "else the default point (togglecf.run.prune.DEFAULT_EXPORT_POINT, all features); minutes")
     sp.add_argument("--full-sweep", action="store_true",
                     help="with --max-bytes: run (or resume) the pruning sweep of --models in --sweep DIR first "
-                    "(19 points x 5 folds on the 25 trials: ~30 min on 2 cores) and pick from it")
+                    "(its points x 5 folds on the model's training trials: the longest step of an export) and pick from it")
     sp.add_argument("--sweep", metavar="DIR", help="sweep directory for --max-bytes (default: OUT/sweep)")
     add_sweep_arguments(sp)
     sp.set_defaults(func=Run("export", "togglecf.cli.export:cmd_export", extras=("export",), quiet_libraries=True))

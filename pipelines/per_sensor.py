@@ -10,10 +10,10 @@ from a model that never saw the dataset (``togglecf train --from-pretrained``) a
 scratch; every held-out trial scored beside VQF's defaults. The base of the re-learning for a
 dataset is the pretrained recipe trained on the *other* datasets: leave-one-dataset-out's models
 (``--base-from``, default ``build/lodo``, what ``make run`` writes as ``without_<name>/models``), or,
-when there are none, trained here first into ``<out>/base/without_<name>`` (minutes).
+when there are none, trained here first into ``<work>/base/without_<name>`` (minutes).
 
 Writes ``<out>/per_sensor.md`` (its first line names this command and the code) and
-``per_sensor.json`` (every held-out trial's errors). ``python pipelines/main.py --full`` runs it.
+``per_sensor.json`` (every held-out trial's errors); the models go to ``--work`` (``build/per_sensor``). ``python pipelines/main.py --full`` runs it.
 """
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ from togglecf.run.lodo import dataset_dirs
 from togglecf.run.per_sensor import PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
 
 OUT_DIR = Path("reports/per_sensor")
+WORK_DIR = Path("build/per_sensor")
 BASE_FROM = Path("build/lodo")
 QUICK = PerSensorConfig(folds=2, sizes=(2, 0), scratch_sizes=())
 
@@ -57,7 +58,9 @@ def main(argv=None) -> int:
                    help="sizes at which the learned VQF is also trained from scratch (e.g. all; '' none)")
     p.add_argument("--seed", type=int, default=0, help="fold assignment and training subsets (0: round-robin)")
     p.add_argument("--quick", action="store_true", help="2 folds, 2 and all recordings, no scratch training")
-    p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR")
+    p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR", help="the tables (default: %(default)s)")
+    p.add_argument("--work", type=Path, default=WORK_DIR, metavar="DIR",
+                   help="the re-learned and trained models, the bases trained here (default: %(default)s)")
     args = p.parse_args(argv)
     try:
         dirs = [Path(d) for d in args.data] if args.data else dataset_dirs(resolve_data_dir(None))
@@ -69,7 +72,7 @@ def main(argv=None) -> int:
     settings = QUICK if args.quick else PerSensorConfig(args.folds, args.sizes, args.scratch_sizes, args.seed)
     command = "python pipelines/per_sensor.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])
                                                   if (argv if argv is not None else sys.argv[1:]) else "")
-    results = per_sensor(dirs, args.out, base_models(dirs, args.base_from, args.out), settings)
+    results = per_sensor(dirs, args.work, base_models(dirs, args.base_from, args.work), settings)
     text = per_sensor_table(results, dirs, command)
     atomic_write_text(args.out / "per_sensor.md", text)
     atomic_write_json(args.out / "per_sensor.json", per_sensor_json(results))

@@ -1,4 +1,4 @@
-"""Speed of every registered togglecf filter next to VQF, imufusion and ahrs on one BROAD trial.
+"""Speed of every classic togglecf filter (``filters.FILTERS``) next to VQF, imufusion and ahrs on one BROAD trial.
 
     .venv/bin/python pipelines/bench_filters.py [--quick] [--trial NAME] [--ahrs-samples 5000] [--repeats 3]
         [--out PATH]

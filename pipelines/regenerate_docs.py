@@ -463,20 +463,22 @@ def doc_figures(docs: Path) -> None:
 def filter_defaults(out: Path, command: str) -> None:
     import dataclasses
 
-    from togglecf.filters import FILTERS, FilterSettings
+    from togglecf.filters import FilterSettings
+    from togglecf.registry import CATALOG, CLASSIC_NAMES
 
     base = {f.name for f in dataclasses.fields(FilterSettings)}
     rows = []
-    for name, cls in sorted(FILTERS.items()):
-        settings_cls = cls.Settings
+    for name in CLASSIC_NAMES:
+        entry = CATALOG[name]
+        settings_cls = entry.cls.Settings
         fields = [f"{f.name} = {_compact(f.default)}" for f in dataclasses.fields(settings_cls)
                   if f.name not in base and f.default is not dataclasses.MISSING]
-        rows.append([f"`{name}`", f"`{cls.__module__}.{cls.__name__}`",
+        rows.append([f"`{name}`", entry.description, f"`{entry.cls.__module__}.{entry.cls.__name__}`",
                      f"`{settings_cls.__name__}`", "; ".join(fields)])
     write(out, "filter_defaults.md", header(command, f"the code of `togglecf.filters` ({_now()})") +
-          "\nThe filters of `togglecf.filters.FILTERS` (CLI names) and their settings' defaults, read from the "
-          "dataclasses (common settings of `FilterSettings` left out).\n\n"
-          + md_table(["CLI name", "class", "settings", "defaults"], rows))
+          "\nThe classic filters of the filter table (`togglecf.registry.CATALOG`, kind `classic`; CLI names) and "
+          "their settings' defaults, read from the dataclasses (common settings of `FilterSettings` left out).\n\n"
+          + md_table(["CLI name", "what", "class", "settings", "defaults"], rows))
 
 
 # --------------------------------------------------------------------------------------------- run tables

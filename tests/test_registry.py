@@ -1,9 +1,12 @@
 """The filter registry (``FilterSpec``): every filter by name, the trained toggling filter
 included, validated without a sampling rate; compiled models cached by content."""
+import argparse
+import importlib
 import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,16 +15,81 @@ from togglecf.filters import FILTERS, MadgwickFilter
 from togglecf.core.io import file_sha256
 from togglecf.core.extras import MissingExtraError, missing_extra_message
 from togglecf import simulate as sim
-from togglecf.registry import (FILTER_NAMES, LEARNED_VQF, REFERENCE_VQF, TOGGLING, TRAINED, FilterSpec, ReferenceVQF,
-                               filter_spec)
+from togglecf.registry import (CATALOG, CLASSIC_NAMES, FILTER_NAMES, LEARNED_VQF, REFERENCE_VQF, TOGGLING, TRAINED,
+                               VQF_TOGGLING, FilterEntry, FilterSpec, ReferenceVQF, filter_spec)
 from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.toggling import load_toggling_filter, model_dir_digest
 
 
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+
+
 def test_names_cover_classic_filters_and_toggling():
     assert set(FILTER_NAMES) == set(FILTERS) | set(TRAINED) | {LEARNED_VQF, REFERENCE_VQF} and TOGGLING in TRAINED
+
+
+def _kind(kind):
+    return tuple(n for n, e in CATALOG.items() if e.kind == kind)
+
+
+def _choices_of_filter_options():
+    """{(command, option): choices} of every ``--filter``-like option with choices in the CLI's parser."""
+    from togglecf.cli.parsers import build_parser
+
+    out = {}
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for command, parser in sub.choices.items():
+        for action in parser._actions:
+            if action.choices is not None and any(o.startswith("--filter") for o in action.option_strings):
+                out[(command, action.option_strings[0])] = tuple(action.choices)
+    return out
+
+
+def test_one_table_feeds_the_names_the_cli_the_docs_and_the_study(tmp_path):
+    """``CATALOG`` is the one list of filters: the registry's names, ``filters.FILTERS``, the CLI's choices,
+    the docs' table of defaults and the study report's labels are read from it."""
+    assert FILTER_NAMES == tuple(CATALOG) and all(isinstance(e, FilterEntry) and e.name == n for n, e in CATALOG.items())
+    assert CLASSIC_NAMES == _kind("classic") and TRAINED == _kind("trained") == (TOGGLING, VQF_TOGGLING)
+    assert _kind("pretrained") == (LEARNED_VQF,) and _kind("reference") == (REFERENCE_VQF,)
+    assert list(FILTERS.items()) == [(n, CATALOG[n].cls) for n in CLASSIC_NAMES]  # the ML-free view, same order
+    assert all(e.label and e.description and "\n" not in e.description for e in CATALOG.values())
+
+    choices = _choices_of_filter_options()
+    assert ("evaluate", "--filter") in choices and ("tune", "--filter") in choices
+    for (command, option), names in choices.items():
+        assert names == {"tune": CLASSIC_NAMES, "export": TRAINED}.get(command, FILTER_NAMES), (command, option)
+    from togglecf.cli.filter_list import filter_names  # --filters LIST
+    assert filter_names(",".join(FILTER_NAMES)) == list(FILTER_NAMES)
+    with pytest.raises(ValueError, match="unknown filter"):
+        filter_names("madgwick,nofilter")
+
+    sys.path.insert(0, str(PIPELINES))
+    try:
+        regenerate_docs = importlib.import_module("regenerate_docs")
+    finally:
+        sys.path.remove(str(PIPELINES))
+    regenerate_docs.filter_defaults(tmp_path, "cmd")
+    rows = [r for r in (tmp_path / "filter_defaults.md").read_text().splitlines() if r.startswith("| `")]
+    assert [r.split("|")[1].strip().strip("`") for r in rows] == list(CLASSIC_NAMES)
+    assert [r.split("|")[2].strip() for r in rows] == [CATALOG[n].description for n in CLASSIC_NAMES]
+
+    from togglecf.report.study_report import LABELS, MAIN_FILTERS, OTHER_ROWS
+    assert set(LABELS) == set(MAIN_FILTERS) and set(MAIN_FILTERS) - set(CATALOG) == set(OTHER_ROWS)
+    for f in set(MAIN_FILTERS) & set(CATALOG):
+        assert LABELS[f].startswith(CATALOG[f].label + " "), f
+
+
+def test_a_bad_table_row_is_refused():
+    with pytest.raises(ValueError, match="kind"):
+        FilterEntry("x", "learned", "X", "x")
+    with pytest.raises(ValueError, match="class"):
+        FilterEntry("madgwick", "classic", "Madgwick", "no class given")
+    with pytest.raises(ValueError, match="class"):
+        FilterEntry("toggling", "trained", "toggling CF", "a class given", MadgwickFilter)
+    with pytest.raises(ValueError, match="named"):
+        FilterEntry("beta", "classic", "Madgwick", "the class's name differs", MadgwickFilter)
 
 
 def test_the_pretrained_filter_needs_no_models_and_takes_none():

@@ -1,4 +1,9 @@
-"""One registry of every filter the commands run, the trained toggling filter included.
+"""Every filter the commands run, by name, and how to build one.
+
+The names come from one table, ``CATALOG`` (``togglecf.filters.catalog``: name -> ``FilterEntry``
+with kind, label, one-line description and, for a classic filter, its class); ``FILTER_NAMES``,
+``CLASSIC_NAMES`` and ``TRAINED`` are views of it, and so are the CLI's choices, the study report's
+labels and the docs' table of defaults.
 
 A ``FilterSpec`` names a filter and everything needed to build it at any rate: the settings
 overrides of a classic filter, or the model directory of the trained toggling filter (its
@@ -19,26 +24,30 @@ import numpy as np
 from togglecf.core.extras import check_extra, deferred
 from togglecf.core.io import file_sha256
 from togglecf.filters import FILTERS, FilterOutput, OrientationFilter
+from togglecf.filters.catalog import CATALOG, CLASSIC, TRAINED_KIND, FilterEntry, names_of
 from togglecf.toggling.gains import load_gains
 from togglecf.toggling.load import load_toggling_filter, model_dir_digest
 from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, load_pretrained, pretrained_settings
 
-__all__ = ["FilterSpec", "TOGGLING", "VQF_TOGGLING", "LEARNED_VQF", "REFERENCE_VQF", "TRAINED", "FILTER_NAMES",
-           "filter_spec", "is_portable_file", "ReferenceVQF", "ReferenceVQFSettings"]
+__all__ = ["CATALOG", "FilterEntry", "FilterSpec", "TOGGLING", "VQF_TOGGLING", "LEARNED_VQF", "REFERENCE_VQF",
+           "TRAINED", "CLASSIC_NAMES", "FILTER_NAMES", "filter_spec", "is_portable_file", "ReferenceVQF",
+           "ReferenceVQFSettings"]
 
+#: every name a command accepts, in the table's order (``CATALOG``)
+FILTER_NAMES = names_of()
+#: the classic filters (a class of ``togglecf.filters`` each): the ones ``tune`` searches
+CLASSIC_NAMES = names_of(CLASSIC)
+#: the filters trained by ``togglecf train`` (models + learned gains in a model directory)
+TRAINED = names_of(TRAINED_KIND)
 #: CLI name of the trained toggling filter (``--filter toggling --models DIR``)
-TOGGLING = "toggling"
+TOGGLING = CATALOG["toggling"].name
 #: CLI name of the VQF core with learned time constants (``--filter vqf_toggling --models DIR``)
-VQF_TOGGLING = "vqf_toggling"
+VQF_TOGGLING = CATALOG["vqf_toggling"].name
 #: CLI name of the pretrained learned VQF the package ships (``togglecf.LearnedVQF``; no --models needed, or
 #: ``--models FILE.npz``: another portable model, e.g. from ``togglecf train --from-pretrained``)
-LEARNED_VQF = "learned_vqf"
+LEARNED_VQF = CATALOG["learned_vqf"].name
 #: CLI name of the reference VQF (the ``vqf`` package at its defaults; the ``vqf`` extra)
-REFERENCE_VQF = "vqf"
-#: the filters trained by ``togglecf train`` (models + learned gains in a model directory)
-TRAINED = (TOGGLING, VQF_TOGGLING)
-#: every name a command accepts
-FILTER_NAMES = tuple(sorted(FILTERS)) + TRAINED + (LEARNED_VQF, REFERENCE_VQF)
+REFERENCE_VQF = CATALOG["vqf"].name
 
 #: what needs the ``vqf`` extra, in its one-line message
 _VQF_WHAT = f"the {REFERENCE_VQF} filter (the reference VQF, dlaidig/vqf)"

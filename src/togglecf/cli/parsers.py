@@ -73,10 +73,13 @@ class LazyChoices:
         return ", ".join(map(str, self.values()))
 
 
-#: every filter name a command accepts, the trained ones included (``togglecf.registry.FILTER_NAMES``)
+#: every filter name a command accepts, the trained ones included (``togglecf.registry.FILTER_NAMES``, the
+#: names of the filter table ``CATALOG``)
 FILTER_CHOICES = LazyChoices("togglecf.registry", "FILTER_NAMES")
-#: the classic filters (``togglecf.filters.FILTERS``): the ones ``tune`` searches
-CLASSIC_CHOICES = LazyChoices("togglecf.filters", "FILTERS", sort=True)
+#: the classic filters of the same table (``togglecf.registry.CLASSIC_NAMES``): the ones ``tune`` searches
+CLASSIC_CHOICES = LazyChoices("togglecf.registry", "CLASSIC_NAMES")
+#: the trained filters of the same table (``togglecf.registry.TRAINED``): the ones ``export`` writes in C
+TRAINED_CHOICES = LazyChoices("togglecf.registry", "TRAINED")
 
 
 def names_in_help(action, names: LazyChoices):
@@ -325,8 +328,8 @@ def add_export_parser(subparsers):
     sp.add_argument("--no-riscv", action="store_true", help="host sizes only")
     sp.add_argument("--6d", dest="six_d", action="store_true",
                     help="C filter without magnetometer (6D gains from gains.json)")
-    sp.add_argument("--filter", choices=("toggling", "vqf_toggling"), default="toggling",
-                    help="which learned filter goes to OUT/filter in C: toggling (the toggling CF, gains 9d/6d; "
+    sp.add_argument("--filter", choices=TRAINED_CHOICES, default="toggling", metavar="NAME",
+                    help="which learned filter (one of %(choices)s) goes to OUT/filter in C: toggling (the toggling CF, gains 9d/6d; "
                     "togglecf.embedded.cfilter) or vqf_toggling (the VQF core with learned time constants, gains "
                     "vqf_9d/vqf_6d; togglecf.embedded.cvqf_toggling: sizes for host, rv32imc and Cortex-M4F)")
     sp.add_argument("--max-bytes", type=int, metavar="N",

@@ -21,6 +21,7 @@ from scipy.stats import wilcoxon
 from togglecf.core.extras import deferred, require
 from togglecf.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from togglecf.learn.labels import make_targets
+from togglecf.registry import CATALOG
 from togglecf.report.style import color, style
 
 pd = deferred("pandas", extra="data", what="writing the study report's tables (togglecf.report.study_report)")
@@ -30,13 +31,15 @@ __all__ = ["MAIN_FILTERS", "LABELS", "ABLATION_ROWS", "ABLATION_LABELS", "write_
 
 MAIN_FILTERS = ("vqf_toggling", "toggling", "vqf", "vqf_core_defaults", "vqf_core", "madgwick", "madgwick_rest_bias",
                 "cf", "mahony", "aqua", "ekf")
-#: what each row of the study is (summary tables)
-LABELS = {"vqf_toggling": "VQF core + learned time constants (models in the loop)",
-          "toggling": "toggling CF (models in the loop)", "vqf": "VQF (vqf package, defaults)",
-          "vqf_core_defaults": "VQF core (ours) at VQF's defaults = learning off",
-          "vqf_core": "VQF core at its fold TAGP (τ_acc × τ_mag)", "madgwick": "Madgwick (fold TAGP)",
-          "madgwick_rest_bias": "Madgwick, initial-rest gyro bias removed (fold TAGP)", "cf": "fixed-gain CF (fold TAGP)",
-          "mahony": "Mahony (fold TAGP)", "aqua": "AQUA (fold TAGP)", "ekf": "error-state KF (fold TAGP)"}
+#: how the study runs each filter it scores, after the filter's label in the table (``CATALOG``)
+HOW_RUN = {"vqf_toggling": "(models in the loop)", "toggling": "(models in the loop)", "vqf": "(vqf package, defaults)",
+           "vqf_core": "at its fold TAGP (τ_acc × τ_mag)", "madgwick": "(fold TAGP)", "cf": "(fold TAGP)",
+           "mahony": "(fold TAGP)", "aqua": "(fold TAGP)", "ekf": "(fold TAGP)"}
+#: the study's rows that are not a filter of the table, each a filter run another way
+OTHER_ROWS = {"vqf_core_defaults": "VQF core (ours) at VQF's defaults = learning off",
+              "madgwick_rest_bias": "Madgwick, initial-rest gyro bias removed (fold TAGP)"}
+#: what each row of the study is (summary tables), in ``MAIN_FILTERS`` order
+LABELS = {f: OTHER_ROWS[f] if f in OTHER_ROWS else f"{CATALOG[f].label} {HOW_RUN[f]}" for f in MAIN_FILTERS}
 #: filters drawn in ``error_<trial>.png`` (back to front) and, in this order, in ``groups.png``
 ERROR_PLOT_FILTERS = ("vqf", "madgwick", "cf", "toggling", "vqf_toggling")
 #: the bars of the groups figure: the two learned filters, what each is compared with, the fixed CF

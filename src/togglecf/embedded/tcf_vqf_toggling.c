@@ -23,8 +23,8 @@
 #error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_TAU (re-export it)"
 #endif
 
-#if !defined(TCF_VQFT_BACKOFF_MEASURED)
-#error "tcf_config.h must define TCF_VQFT_BACKOFF_MEASURED (re-export it)"
+#if !defined(TCF_VQFT_MAG_BACKOFF_MEASURED)
+#error "tcf_config.h must define TCF_VQFT_MAG_BACKOFF_MEASURED (re-export it)"
 #endif
 
 #if !defined(TCF_VQFT_NOISE_ACC) || !defined(TCF_VQFT_NOISE_MAG)
@@ -54,7 +54,7 @@ static int tcf_vqft_changed(const tcf_vqft_t *f, const tcf_prediction_t *pred) {
   int s;
   for (s = 0; s < TCF_N_CLASSES; ++s)
     if (tcf_vqft_differ(pred->probabilities[s], last->probabilities[s])) return 1;
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)
+  if (TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f)
     for (s = 0; s < 3; ++s)
       if (tcf_vqft_differ(pred->eta_acc[s], last->eta_acc[s]) || tcf_vqft_differ(pred->eta_mag[s], last->eta_mag[s]))
         return 1;
@@ -111,8 +111,8 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const tcf_prediction_t *pred) {
   f->mod.rest_th_acc_sq = expf(2.0f * lc);
   f->k_mag_now = f->mod.k_mag;
 #if TCF_USE_MAG
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)  /* the predicted disturbance (|eta_m| / sigma_m)^2 (0 for NaN: none) */
-    f->mag_disturbance_predicted = tcf_predicted_disturbance(pred, TCF_VQFT_MAG_DIST_SCALE);
+  if (TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f)  /* the predicted disturbance (|eta_m| / sigma_m)^2 (0 for NaN: none) */
+    f->mag_disturbance_predicted = tcf_predicted_disturbance(pred, TCF_VQFT_MAG_DISTURBANCE_SCALE);
 #endif
 }
 
@@ -127,14 +127,15 @@ static void tcf_vqft_follow(tcf_vqft_t *f) {
   f->ln_tau_mag_now += f->modulation_gain * (f->ln_tau_mag_target - f->ln_tau_mag_now);
   f->tau_acc_now = expf(f->ln_tau_acc_now);
   f->tau_mag_now = expf(f->ln_tau_mag_now);
-  tcf_vqf_mod_from(&f->core, f->tau_acc_now, f->tau_mag_now, 1.0f, &m);  /* only acc_lp and k_mag are taken (sigma unused) */
+  /* only acc_lp and k_mag are taken (sigma unused) */
+  tcf_vqf_mod_from(&f->core, f->tau_acc_now, f->tau_mag_now, 1.0f, &m);
   f->mod.acc_lp = m.acc_lp;
   f->k_mag_now = m.k_mag;
 }
 #endif
 
 #if TCF_USE_MAG
-#if TCF_VQFT_BACKOFF_MEASURED
+#if TCF_VQFT_MAG_BACKOFF_MEASURED
 /* _field_deviation_sq: the disturbance the magnetometer shows [uT^2], the least |m - m_ref|^2 over the
    unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame;
    0 without a reference or for an invalid sample */
@@ -152,12 +153,13 @@ static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
 
 /* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, at most the core's
    rejection factor - 1 (the learned back-off slows the heading correction no more than the core's
-   own), with TCF_VQFT_BACKOFF_MEASURED at most the one the magnetometer shows instead */
+   own), with TCF_VQFT_MAG_BACKOFF_MEASURED at most the one the magnetometer shows instead */
 static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
   float e = f->mag_disturbance_predicted;
   if (e > 0.0f) {
-#if TCF_VQFT_BACKOFF_MEASURED
-    float em = tcf_vqft_field_deviation_sq(&f->core, mag) / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
+#if TCF_VQFT_MAG_BACKOFF_MEASURED
+    float em = tcf_vqft_field_deviation_sq(&f->core, mag)
+               / (TCF_VQFT_MAG_DISTURBANCE_SCALE * TCF_VQFT_MAG_DISTURBANCE_SCALE);
 #else
     float em = f->core.c.mag_rejection_factor - 1.0f;
     (void)mag;  /* only the measured law reads the field */
@@ -181,7 +183,7 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   tcf_vqft_follow(f);
 #endif
 #if TCF_USE_MAG
-  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DIST_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
+  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
 #endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
   /* step 4, the learned VQF's rule: whenever eta is finite, whatever the probabilities; a sensor whose

@@ -295,11 +295,14 @@ def test_checker_fails_on_planted_drift():
     assert name_drift("lp", ["k", "decay"], s["demo_lp_t"]) == ["lp: 'decay' only in Python", "lp: 'beta' only in C"]
     assert not name_drift("lp", ["k", "decay"], s["demo_lp_t"], renamed={"decay": ("beta", "1 - decay")})
     assert name_drift("lp", ["k", "decay"], s["demo_lp_t"], renamed={"decay": ("one_minus_decay", "")}) == [
-        "lp: 'one_minus_decay' only in Python", "lp: 'beta' only in C", "lp: renaming 'decay' -> 'one_minus_decay' is stale"]
+        "lp: 'one_minus_decay' only in Python", "lp: 'beta' only in C",
+        "lp: renaming 'decay' -> 'one_minus_decay' is stale"]
     # an exception that no longer applies fails too
-    assert name_drift("demo", [*python[:1], "rest", *python[2:], "c"], s["demo_t"], c_only={"c": "coefficients"}) == [
+    fixed = [*python[:1], "rest", *python[2:]]
+    assert name_drift("demo", [*fixed, "c"], s["demo_t"], c_only={"c": "coefficients"}) == [
         "demo: exception 'c' (C only) is stale"]
-    assert name_drift("demo", ["quat"], {"quat": 0}, py_only={"gone": "x"}) == ["demo: exception 'gone' (Python only) is stale"]
+    assert name_drift("demo", ["quat"], {"quat": 0}, py_only={"gone": "x"}) == [
+        "demo: exception 'gone' (Python only) is stale"]
 
 
 def test_checker_sees_a_drift_in_the_real_header(structs):

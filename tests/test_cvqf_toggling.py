@@ -220,7 +220,7 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
 
 def test_measured_backoff_law_matches_python(model_dir, mini_trial, tmp_path):
     """The other back-off law (``mag_backoff_measured``: the predicted disturbance capped by the one
-    the magnetometer shows, TCF_VQFT_BACKOFF_MEASURED 1), which models trained before 2026-12 store:
+    the magnetometer shows, TCF_VQFT_MAG_BACKOFF_MEASURED 1), which models trained before 2026-12 store:
     C vs Python with the same predictions within the arithmetic bound, and not the default law's output
     (σ_m 3 µT backs off on the mini cut under either law, by different amounts)."""
     d = tmp_path / "measured"

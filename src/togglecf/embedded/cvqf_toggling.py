@@ -110,10 +110,10 @@ def _filter_defines(filt) -> str:
 #define TCF_VQFT_LN_REST_TH_ACC_CORE {c_float(p.ln_rest_th_acc_core)}
 /* sigma_m [uT] of step 3 (heading gain / (1 + min((|eta_m| / sigma_m)^2, mag_rejection_factor - 1)));
    0: off (always 0 in 6D) */
-#define TCF_VQFT_MAG_DIST_SCALE {c_float(p.mag_disturbance_scale)}
+#define TCF_VQFT_MAG_DISTURBANCE_SCALE {c_float(p.mag_disturbance_scale)}
 /* mag_backoff_measured: the back-off acts on at most the disturbance the magnetometer shows (instead of
    the rejection-factor bound) */
-#define TCF_VQFT_BACKOFF_MEASURED {1 if s.mag_backoff_measured else 0}
+#define TCF_VQFT_MAG_BACKOFF_MEASURED {1 if s.mag_backoff_measured else 0}
 #define TCF_VQFT_CONFIDENCE_FLOOR {c_float(s.confidence_floor)}   /* c0 of step 1 */
 #define TCF_VQFT_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}   /* w_a of step 4 */
 #define TCF_VQFT_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}   /* w_m of step 4 */

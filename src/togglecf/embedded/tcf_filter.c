@@ -191,13 +191,13 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
   f->p_static = p_static;
-  if (!f->initialised) {  /* initialise orientation and vectors from the first valid sample */
+  if (!f->initialized) {  /* initialise orientation and vectors from the first valid sample */
     static const float identity[4] = {1.0f, 0.0f, 0.0f, 0.0f};
     float q0[4];
     if (acc_ok && acc_mag_quaternion(identity, a_d, m_d, mag_ok, q0)) {
       static const float north[3] = {0.0f, 1.0f, 0.0f};
-      f->q[0] = q0[0]; f->q[1] = q0[1]; f->q[2] = q0[2]; f->q[3] = q0[3];
-      f->initialised = 1u;
+      f->quat[0] = q0[0]; f->quat[1] = q0[1]; f->quat[2] = q0[2]; f->quat[3] = q0[3];
+      f->initialized = 1u;
       f->a_pred[0] = a_d[0]; f->a_pred[1] = a_d[1]; f->a_pred[2] = a_d[2];
       if (mag_ok) {
         f->m_pred[0] = m_d[0]; f->m_pred[1] = m_d[1]; f->m_pred[2] = m_d[2];
@@ -217,8 +217,8 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   }
   w[0] = gyr[0] - f->bias[0]; w[1] = gyr[1] - f->bias[1]; w[2] = gyr[2] - f->bias[2];
   if (gyro_increment(w, dt, dq) && g_ok) {  /* step 2: gyro propagation */
-    tcf_q_mul(f->q, dq, f->q);
-    tcf_q_normalize(f->q);
+    tcf_q_mul(f->quat, dq, f->quat);
+    tcf_q_normalize(f->quat);
     tcf_q_rotate(dq, 1, f->a_pred, f->a_pred);  /* earth-fixed directions rotate opposite to the body */
     tcf_q_rotate(dq, 1, f->m_pred, f->m_pred);
   }
@@ -230,10 +230,10 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     for (j = 0; j < 3; ++j) f->m_pred[j] = (1.0f - alpha_m) * f->m_pred[j] + alpha_m * m_d[j];
     f->alpha_mag = alpha_m;
   }
-  if (acc_mag_quaternion(f->q, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
+  if (acc_mag_quaternion(f->quat, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
     const float gamma = f->c.gamma, c = 1.0f - gamma;  /* step 7: output blend (LERP on the short arc) */
-    for (j = 0; j < 4; ++j) f->q[j] = c * f->q[j] + gamma * q_am[j];
-    tcf_q_normalize(f->q);
+    for (j = 0; j < 4; ++j) f->quat[j] = c * f->quat[j] + gamma * q_am[j];
+    tcf_q_normalize(f->quat);
   }
 }
 
@@ -245,11 +245,11 @@ int tcf_filter_init(tcf_filter_t *f, float fs) {
   if (rc != TCF_OK) return rc;  /* fs not a rate, or above TCF_MAX_FS */
   if (!(1.0f / fs <= TCF_MAX_DT)) return TCF_ERR_SETTINGS;  /* the gyro would never be integrated */
   tcf_coefficients(1.0f / fs, &f->c);
-  f->q[0] = 1.0f; f->q[1] = 0.0f; f->q[2] = 0.0f; f->q[3] = 0.0f;
+  f->quat[0] = 1.0f; f->quat[1] = 0.0f; f->quat[2] = 0.0f; f->quat[3] = 0.0f;
   for (j = 0; j < 3; ++j) {
     f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
-  f->initialised = 0u;
+  f->initialized = 0u;
   (void)tcf_features_init(&f->feat, fs);  /* TCF_OK: the checks of tcf_features_rate above */
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;
@@ -280,7 +280,7 @@ void tcf_filter_update(tcf_filter_t *f, const float gyr[3], const float acc[3], 
 }
 
 void tcf_filter_quat(const tcf_filter_t *f, float q[4]) {
-  q[0] = f->q[0]; q[1] = f->q[1]; q[2] = f->q[2]; q[3] = f->q[3];
+  q[0] = f->quat[0]; q[1] = f->quat[1]; q[2] = f->quat[2]; q[3] = f->quat[3];
 }
 
 int tcf_filter_features(const tcf_filter_t *f, float feat[TCF_N_FEATURES]) {

@@ -60,14 +60,16 @@ typedef struct tcf_filter_coeffs {
   float bias_gain;                    /* gyro bias learning, 1 - exp(-Ts / bias_tau) (0: off) */
 } tcf_filter_coeffs_t;
 
+/* The state: the names of TogglingFilter's state (filters.base._COMMON_STATE_FIELDS, then bias, a_pred,
+   m_pred of filters.toggling) and of its diagnostics; tests/test_names.py compares them. */
 typedef struct tcf_filter {
   tcf_filter_coeffs_t c;  /* per-sample constants at the init rate */
   /* orientation filter (toggle_step) */
-  float q[4];          /* orientation, sensor -> ENU, [w x y z] */
+  float quat[4];       /* orientation, sensor -> ENU, [w x y z] */
   float bias[3];       /* gyro bias estimate [rad/s] */
   float a_pred[3];     /* gyro-propagated, filtered specific force (sensor frame) [m/s^2] */
   float m_pred[3];     /* gyro-propagated, filtered magnetic field (sensor frame) [uT] */
-  uint32_t initialised;  /* 0 until the first valid acc(/mag) sample */
+  uint32_t initialized;  /* 0 until the first valid acc(/mag) sample */
   /* feature window and held prediction (tcf_features.h; NaN before the first full window) */
   tcf_features_t feat;
   /* diagnostics of the last sample */
@@ -81,7 +83,7 @@ typedef struct tcf_filter {
 #define TCF_STATE_BYTES (4 * (22 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
 
 /* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
-   settings (see "Rate at init"), identity orientation, not initialised, empty window, no
+   settings (see "Rate at init"), identity orientation, not initialized, empty window, no
    prediction. Returns TCF_OK (0), or (f untouched) TCF_ERR_RATE (fs not finite and > 0),
    TCF_ERR_RATE_MAX (fs > TCF_MAX_FS) or TCF_ERR_SETTINGS (1/fs > TCF_MAX_DT: the gyro would never
    be integrated). */

@@ -65,14 +65,14 @@ static void m_mm(const float a[9], const float b[9], float out[9]) {
 
 /* Butterworth LP_2 with time constant tau at sampling time ts (butterworth_lp_coefficients):
    C = tan(pi fc ts) with fc = sqrt(2) / (2 pi tau), D = 1 + sqrt(2) C + C^2, b0 = C^2 / D,
-   a2 = (1 - sqrt(2) C + C^2) / D; stored as k = 4 b0 = 1 + a1 + a2 and beta = 1 - a2 =
-   2 sqrt(2) C / D. */
+   a2 = (1 - sqrt(2) C + C^2) / D; stored as k = 4 b0 = 1 + a1 + a2 and one_minus_decay = 1 - a2 =
+   2 sqrt(2) C / D (the Python LowPass keeps decay = a2 itself). */
 static tcf_vqf_lp_coef_t lp_coef(float tau, float ts) {
   tcf_vqf_lp_coef_t c;
   float cc = tanf(ts / (TCF_VQF_SQRT2 * tau));  /* pi fc ts = ts / (sqrt(2) tau) */
   float d = 1.0f + TCF_VQF_SQRT2 * cc + cc * cc;
   c.k = 4.0f * cc * cc / d;
-  c.beta = 2.0f * TCF_VQF_SQRT2 * cc / d;
+  c.one_minus_decay = 2.0f * TCF_VQF_SQRT2 * cc / d;
   return c;
 }
 
@@ -86,7 +86,7 @@ static int lp_begin(tcf_vqf_lp_head_t *h) {
 /* One channel s = {v, dv}: the output for input x (_lp). With w the all-pole part of H(z) =
    b0 (1 + z^-1)^2 / (1 + a1 z^-1 + a2 z^-2) scaled to unit DC gain, v_k = 4 b0 w_k and
    dv_k = v_k - v_{k-1}:
-     dv_k = (1 - beta) dv_{k-1} + k (x_k - v_{k-1}),   v_k = v_{k-1} + dv_k,
+     dv_k = (1 - one_minus_decay) dv_{k-1} + k (x_k - v_{k-1}),   v_k = v_{k-1} + dv_k,
      y_k  = v_{k-1} + (dv_k - dv_{k-1}) / 4             (= b0 (w_k + 2 w_{k-1} + w_{k-2}))
    All increments are small numbers added to a level, so float32 keeps the pole positions
    and the DC gain exact. The state is the signal itself (level and increment), not a
@@ -96,7 +96,7 @@ static int lp_begin(tcf_vqf_lp_head_t *h) {
    the running sum, the output the mean. */
 static float lp_step(float s[2], float x, int ready, uint32_t n, const tcf_vqf_lp_coef_t *c) {
   if (ready) {
-    float dv = (s[1] - c->beta * s[1]) + c->k * (x - s[0]);
+    float dv = (s[1] - c->one_minus_decay * s[1]) + c->k * (x - s[0]);
     float y = s[0] + 0.25f * (dv - s[1]);
     s[0] += dv;
     s[1] = dv;
@@ -210,7 +210,7 @@ int tcf_vqf_init(tcf_vqf_t *f, const tcf_vqf_params_t *p) {
     c->mag_lp = lp_coef(p->mag_current_tau, ts);
   } else {
     c->mag_lp.k = 0.0f;
-    c->mag_lp.beta = 0.0f;
+    c->mag_lp.one_minus_decay = 0.0f;
   }
   c->k_mag_ref = gain_from_tau(p->mag_ref_tau, ts);
   c->mag_norm_th = p->mag_norm_th;
@@ -233,11 +233,11 @@ void tcf_vqf_reset(tcf_vqf_t *f) {
   size_t i;
   for (i = 0; i < sizeof *f; ++i) b[i] = 0u;  /* all-bits-zero is 0.0f for IEEE floats */
   f->c = c;
-  f->q[0] = 1.0f;
+  f->quat[0] = 1.0f;
   f->q_gyr[0] = 1.0f;
   f->q_acc[0] = 1.0f;
   f->bias_p[0] = f->bias_p[4] = f->bias_p[8] = c.bias_p0;
-  f->mag_dist = 1u;
+  f->mag_dist_detected = 1u;
   f->mag_reject_t = c.mag_max_rejection_t;
   f->mag_cand_norm = -1.0f;
   f->k_mag_init = 1.0f;
@@ -277,9 +277,9 @@ static void tcf_vqf_update_gyr(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float
   int ready, i;
   if (p->rest_bias || p->mag_rejection) {  /* (R1); the rest low-pass also feeds (M3) */
     float g[3], d2 = 0.0f;
-    ready = lp_begin(&f->rgyr_h);
-    for (i = 0; i < 3; ++i) g[i] = lp_step(f->rgyr_lp[i], gyr[i], ready, f->rgyr_h.n, &p->rest_lp);
-    lp_end(&f->rgyr_h, f->rgyr_lp, 3, ready, p->rest_tau, p->ts);
+    ready = lp_begin(&f->rest_gyr_bank_head);
+    for (i = 0; i < 3; ++i) g[i] = lp_step(f->rest_gyr_bank[i], gyr[i], ready, f->rest_gyr_bank_head.n, &p->rest_lp);
+    lp_end(&f->rest_gyr_bank_head, f->rest_gyr_bank, 3, ready, p->rest_tau, p->ts);
     for (i = 0; i < 3; ++i) {
       float d = gyr[i] - g[i];
       f->rest_gyr_lp[i] = g[i];
@@ -288,10 +288,10 @@ static void tcf_vqf_update_gyr(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float
     if (d2 >= m->rest_th_gyr_sq || fabsf(g[0]) > p->bias_clip || fabsf(g[1]) > p->bias_clip ||
         fabsf(g[2]) > p->bias_clip) {
       f->rest_t = 0.0f;
-      f->rest = 0u;
+      f->rest_detected = 0u;
     } else {
       f->rest_t += p->ts;
-      if (f->rest_t >= p->rest_min_t) f->rest = 1u;
+      if (f->rest_t >= p->rest_min_t) f->rest_detected = 1u;
     }
   }
   /* Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual dt */
@@ -310,19 +310,19 @@ static int tcf_vqf_update_acc(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float 
   int ready, i;
   if (p->rest_bias) {  /* (R2) */
     float l[3], d2 = 0.0f;
-    ready = lp_begin(&f->racc_h);
-    for (i = 0; i < 3; ++i) l[i] = lp_step(f->racc_lp[i], acc[i], ready, f->racc_h.n, &p->rest_lp);
-    lp_end(&f->racc_h, f->racc_lp, 3, ready, p->rest_tau, p->ts);
+    ready = lp_begin(&f->rest_acc_bank_head);
+    for (i = 0; i < 3; ++i) l[i] = lp_step(f->rest_acc_bank[i], acc[i], ready, f->rest_acc_bank_head.n, &p->rest_lp);
+    lp_end(&f->rest_acc_bank_head, f->rest_acc_bank, 3, ready, p->rest_tau, p->ts);
     for (i = 0; i < 3; ++i) d2 += (acc[i] - l[i]) * (acc[i] - l[i]);
     if (d2 >= m->rest_th_acc_sq) {
       f->rest_t = 0.0f;
-      f->rest = 0u;
+      f->rest_detected = 0u;
     }
   }
   tcf_vqf_rotate(f->q_gyr, acc, ai);  /* Alg. 1 l. 9 */
-  ready = lp_begin(&f->acc_h);  /* Alg. 1 l. 10 */
-  for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_h.n, &m->acc_lp);
-  lp_end(&f->acc_h, f->acc_lp, 3, ready, p->tau_acc, p->ts);
+  ready = lp_begin(&f->acc_lp_head);  /* Alg. 1 l. 10 */
+  for (i = 0; i < 3; ++i) fl[i] = lp_step(f->acc_lp[i], ai[i], ready, f->acc_lp_head.n, &m->acc_lp);
+  lp_end(&f->acc_lp_head, f->acc_lp, 3, ready, p->tau_acc, p->ts);
   tcf_vqf_rotate(f->q_acc, fl, ae);  /* Alg. 1 l. 11 */
   na = sqrtf(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2]);
   if (!(na > 0.0f && na < INFINITY)) return 0;
@@ -338,7 +338,7 @@ static int tcf_vqf_update_acc(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const float 
   }
   tcf_q_mul(corr, f->q_acc, f->q_acc);
   tcf_q_unit(f->q_acc);
-  f->initialised = 1u;
+  f->initialized = 1u;
   return 1;
 }
 
@@ -352,15 +352,15 @@ static void tcf_vqf_update_bias(tcf_vqf_t *f, const tcf_vqf_mod_t *m, float ax, 
   q_matrix(q6, r);  /* R(q_6D) */
   rb[0] = r[0] * b0 + r[1] * b1 + r[2] * b2;
   rb[1] = r[3] * b0 + r[4] * b1 + r[5] * b2;
-  ready = lp_begin(&f->r_h);  /* R_bar = LP_2(R; tau_acc) */
-  for (i = 0; i < 9; ++i) rl[i] = lp_step(f->r_lp[i], r[i], ready, f->r_h.n, &m->acc_lp);
-  lp_end(&f->r_h, f->r_lp, 9, ready, p->tau_acc, p->ts);
-  ready = lp_begin(&f->rb_h);  /* (R b)_bar = LP_2(R b; tau_acc), x and y */
-  for (i = 0; i < 2; ++i) rb[i] = lp_step(f->rb_lp[i], rb[i], ready, f->rb_h.n, &m->acc_lp);
-  lp_end(&f->rb_h, f->rb_lp, 2, ready, p->tau_acc, p->ts);
+  ready = lp_begin(&f->bias_r_lp_head);  /* R_bar = LP_2(R; tau_acc) */
+  for (i = 0; i < 9; ++i) rl[i] = lp_step(f->bias_r_lp[i], r[i], ready, f->bias_r_lp_head.n, &m->acc_lp);
+  lp_end(&f->bias_r_lp_head, f->bias_r_lp, 9, ready, p->tau_acc, p->ts);
+  ready = lp_begin(&f->bias_rb_lp_head);  /* (R b)_bar = LP_2(R b; tau_acc), x and y */
+  for (i = 0; i < 2; ++i) rb[i] = lp_step(f->bias_rb_lp[i], rb[i], ready, f->bias_rb_lp_head.n, &m->acc_lp);
+  lp_end(&f->bias_rb_lp_head, f->bias_rb_lp, 2, ready, p->tau_acc, p->ts);
   bias_predict(f);  /* (B1) */
   for (i = 0; i < 9; ++i) P[i] = f->bias_p[i];
-  if (p->rest_bias && f->rest) {  /* (B2): y = rest LP of the gyro, M = I, P M^T = P */
+  if (p->rest_bias && f->rest_detected) {  /* (B2): y = rest LP of the gyro, M = I, P M^T = P */
     float w = p->bias_w_rest;
     for (i = 0; i < 9; ++i) s[i] = P[i];
     s[0] += w; s[4] += w; s[8] += w;
@@ -384,22 +384,22 @@ static void tcf_vqf_mag_disturbance(tcf_vqf_t *f, const float me[3]) {
   float nrm = sqrtf(me[0] * me[0] + me[1] * me[1] + me[2] * me[2]);  /* (M1) */
   float dip = -asinf(clipf(me[2] / nrm, 1.0f)), ref_n, cand_n;
   if (p->mag_cur_tau > 0.0f) {
-    int ready = lp_begin(&f->mag_h);
-    nrm = lp_step(f->mag_lp[0], nrm, ready, f->mag_h.n, &p->mag_lp);
-    dip = lp_step(f->mag_lp[1], dip, ready, f->mag_h.n, &p->mag_lp);
-    lp_end(&f->mag_h, f->mag_lp, 2, ready, p->mag_cur_tau, p->ts);
+    int ready = lp_begin(&f->mag_nd_lp_head);
+    nrm = lp_step(f->mag_nd_lp[0], nrm, ready, f->mag_nd_lp_head.n, &p->mag_lp);
+    dip = lp_step(f->mag_nd_lp[1], dip, ready, f->mag_nd_lp_head.n, &p->mag_lp);
+    lp_end(&f->mag_nd_lp_head, f->mag_nd_lp, 2, ready, p->mag_cur_tau, p->ts);
   }
   ref_n = f->mag_ref_norm;  /* (M2) */
   if (fabsf(nrm - ref_n) < p->mag_norm_th * ref_n && fabsf(dip - f->mag_ref_dip) < p->mag_dip_th) {
     f->mag_undisturbed_t += p->ts;
     if (f->mag_undisturbed_t >= p->mag_min_undisturbed_t) {
-      f->mag_dist = 0u;
+      f->mag_dist_detected = 0u;
       f->mag_ref_norm += p->k_mag_ref * (nrm - ref_n);
       f->mag_ref_dip += p->k_mag_ref * (dip - f->mag_ref_dip);
     }
   } else {
     f->mag_undisturbed_t = 0.0f;
-    f->mag_dist = 1u;
+    f->mag_dist_detected = 1u;
   }
   cand_n = f->mag_cand_norm;  /* (M3) */
   if (fabsf(nrm - cand_n) < p->mag_norm_th * cand_n && fabsf(dip - f->mag_cand_dip) < p->mag_dip_th) {
@@ -407,11 +407,11 @@ static void tcf_vqf_mag_disturbance(tcf_vqf_t *f, const float me[3]) {
     if (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] >= p->mag_new_min_gyr_sq) f->mag_cand_t += p->ts;
     f->mag_cand_norm += p->k_mag_ref * (nrm - cand_n);
     f->mag_cand_dip += p->k_mag_ref * (dip - f->mag_cand_dip);
-    if (f->mag_dist && (f->mag_cand_t >= p->mag_new_time ||
+    if (f->mag_dist_detected && (f->mag_cand_t >= p->mag_new_time ||
                         (f->mag_ref_norm == 0.0f && f->mag_cand_t >= p->mag_new_first_time))) {
       f->mag_ref_norm = f->mag_cand_norm;
       f->mag_ref_dip = f->mag_cand_dip;
-      f->mag_dist = 0u;
+      f->mag_dist_detected = 0u;
       f->mag_undisturbed_t = p->mag_min_undisturbed_t;
     }
   } else {
@@ -431,7 +431,7 @@ static float tcf_vqf_update_mag(tcf_vqf_t *f, const tcf_vqf_mod_t *m, const floa
   dis = wrapf(atan2f(me[0], me[1]) - f->delta);  /* Alg. 1 l. 18-19 */
   k = m->k_mag;
   if (p->mag_rejection) {  /* (M4) */
-    if (f->mag_dist) {
+    if (f->mag_dist_detected) {
       if (f->mag_reject_t <= p->mag_max_rejection_t) {
         f->mag_reject_t += p->ts;
         k = 0.0f;
@@ -458,12 +458,12 @@ static void tcf_vqf_update_output(tcf_vqf_t *f, const float q6[4]) {
   int i;
   if (f->c.use_mag) {  /* Alg. 1 l. 21: q_9D = [cos delta/2, 0, 0, sin delta/2] (x) q_6D */
     float h = 0.5f * f->delta, c = cosf(h), s = sinf(h);
-    f->q[0] = c * q6[0] - s * q6[3];
-    f->q[1] = c * q6[1] - s * q6[2];
-    f->q[2] = c * q6[2] + s * q6[1];
-    f->q[3] = c * q6[3] + s * q6[0];
+    f->quat[0] = c * q6[0] - s * q6[3];
+    f->quat[1] = c * q6[1] - s * q6[2];
+    f->quat[2] = c * q6[2] + s * q6[1];
+    f->quat[3] = c * q6[3] + s * q6[0];
   } else {
-    for (i = 0; i < 4; ++i) f->q[i] = q6[i];
+    for (i = 0; i < 4; ++i) f->quat[i] = q6[i];
   }
 }
 
@@ -489,10 +489,10 @@ void tcf_vqf_update_mod(tcf_vqf_t *f, const float gyr[3], const float acc[3], co
 /* ------------------------------------------------------------------ getters */
 
 void tcf_vqf_quat(const tcf_vqf_t *f, float q[4]) {
-  q[0] = f->q[0]; q[1] = f->q[1]; q[2] = f->q[2]; q[3] = f->q[3];
+  q[0] = f->quat[0]; q[1] = f->quat[1]; q[2] = f->quat[2]; q[3] = f->quat[3];
 }
 
-int tcf_vqf_rest(const tcf_vqf_t *f) { return f->rest ? 1 : 0; }
+int tcf_vqf_rest(const tcf_vqf_t *f) { return f->rest_detected ? 1 : 0; }
 
-int tcf_vqf_mag_disturbed(const tcf_vqf_t *f) { return (f->c.use_mag && f->mag_dist) ? 1 : 0; }
+int tcf_vqf_mag_disturbed(const tcf_vqf_t *f) { return (f->c.use_mag && f->mag_dist_detected) ? 1 : 0; }
 

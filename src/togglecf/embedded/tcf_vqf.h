@@ -18,8 +18,8 @@
  * reported by togglecf.embedded.cvqf.export_c_vqf (vqf_report.json) for the compiler at hand.
  *
  * Low-pass filters: the second-order Butterworth LP_2 in the "delta" form of the Python filter
- * (vqf_core.LowPass, _lp_bank; state: output level v and increment dv, coefficients 4 b0 and beta = 1 - a2,
- * both small and exactly representable) instead of VQF's direct form II transposed: with
+ * (vqf_core.LowPass, _lp_bank; state: output level v and increment dv, coefficients k = 4 b0 and
+ * one_minus_decay = 1 - a2, both small and exactly representable) instead of VQF's direct form II transposed: with
  * tau_acc = 3 s at 286 Hz, a1 and a2 are within 2.3e-3 of -2 and 1, and in float32 the DF2T's
  * DC gain (1 + a1 + a2 = 4 b0 = 2.7e-6) would be off by ~5 % and its rounding noise amplified
  * by ~1/(4 b0). Same transfer function, same start-up (running mean for tau, then steady state).
@@ -75,12 +75,17 @@ typedef struct tcf_vqf_params {
   float mag_rejection_factor;   /* (2.0) */
 } tcf_vqf_params_t;
 
-/* coefficients of one LP_2 in delta form: k = 4 b0, beta = 1 - a2 (tcf_vqf.c, lp_step) */
+/* coefficients of one LP_2 in delta form (tcf_vqf.c, lp_step), dimensionless; the fields of
+   togglecf.filters.vqf_core.LowPass, except that the C keeps 1 - decay where Python keeps decay:
+   near 0 (2.3e-3 at tau 3 s, 286 Hz) it is exact in float32, where a2 = 0.9977 would round */
 typedef struct tcf_vqf_lp_coef {
-  float k, beta;
+  float k;                /* 4 b0 = 1 + a1 + a2 (LowPass.k) */
+  float one_minus_decay;  /* 1 - a2 = 1 - LowPass.decay */
 } tcf_vqf_lp_coef_t;
 
-/* per-sample coefficients (derived by tcf_vqf_init; rad, rad/s, (rad/s)^2) */
+/* per-sample coefficients (derived by tcf_vqf_init; rad, rad/s, (rad/s)^2): the fields of
+   VQFCoreCoefficients, with those of its nested CoreModulation (acc_lp, k_mag, bias_w_motion,
+   bias_w_vertical, rest_th_gyr_sq, rest_th_acc_sq) in line; flags 1/0 */
 typedef struct tcf_vqf_coef {
   float ts, inv_ts, max_dt;
   float tau_acc, tau_mag, rest_tau, mag_cur_tau;
@@ -93,14 +98,18 @@ typedef struct tcf_vqf_coef {
   uint32_t use_mag, motion_bias, rest_bias, mag_rejection;
 } tcf_vqf_coef_t;
 
-/* a bank of LP_2 channels: n samples so far while averaging (ready = 0) */
+/* the head of a bank of LP_2 channels (the n and ready of a bank record of vqf_core) */
 typedef struct tcf_vqf_lp_head {
-  uint32_t n, ready;
+  uint32_t n;      /* samples so far while averaging */
+  uint32_t ready;  /* 0 while averaging, 1 after tau */
 } tcf_vqf_lp_head_t;
 
+/* The state: the names of VQFCoreFilter's state record (filters.base._COMMON_STATE_FIELDS and
+   vqf_core.CORE_STATE_FIELDS; tests/test_names.py compares them). A low-pass bank B of the Python
+   record (n, ready, s) is B_head {n, ready} and the channels B = B.s here, the heads first. */
 typedef struct tcf_vqf {
-  tcf_vqf_coef_t c;
-  float q[4];             /* output orientation, sensor -> ENU (9D) or 6D earth frame */
+  tcf_vqf_coef_t c;       /* coefficients (the Python filter's params) */
+  float quat[4];          /* output orientation, sensor -> ENU (9D) or 6D earth frame */
   float q_gyr[4];         /* sensor -> almost-inertial frame I */
   float q_acc[4];         /* I -> 6D earth frame */
   float delta;            /* heading offset [rad] */
@@ -111,17 +120,18 @@ typedef struct tcf_vqf {
   float mag_ref_norm, mag_ref_dip, mag_undisturbed_t, mag_reject_t;
   float mag_cand_norm, mag_cand_dip, mag_cand_t, k_mag_init;
   float k_mag_last;       /* heading gain used in the last sample (diagnostic) */
-  uint32_t initialised;   /* 1 after the first inclination correction */
-  uint32_t rest;          /* 1 at rest */
-  uint32_t mag_dist;      /* 1 while the magnetic field is taken as disturbed */
-  /* low-pass banks: [channel][v, dv] (while averaging: [channel][sum, 0]) */
-  tcf_vqf_lp_head_t acc_h, rgyr_h, racc_h, r_h, rb_h, mag_h;
-  float acc_lp[3][2];     /* [a]_I, tau_acc (Alg. 1 l. 10) */
-  float rgyr_lp[3][2];    /* gyro, tau_rest (R1) */
-  float racc_lp[3][2];    /* acc, tau_rest (R2) */
-  float r_lp[9][2];       /* R(q_6D), tau_acc (B3) */
-  float rb_lp[2][2];      /* (R b)_xy, tau_acc (B3) */
-  float mag_lp[2][2];     /* field norm and dip, tau_mag,current (M1) */
+  uint32_t initialized;   /* 1 after the first inclination correction */
+  uint32_t rest_detected;      /* 1 at rest (VQF's restDetected) */
+  uint32_t mag_dist_detected;  /* 1 while the magnetic field is taken as disturbed (VQF's magDistDetected) */
+  /* low-pass banks: heads, then the channels [channel][v, dv] (while averaging: [channel][sum, 0]) */
+  tcf_vqf_lp_head_t acc_lp_head, rest_gyr_bank_head, rest_acc_bank_head, bias_r_lp_head, bias_rb_lp_head,
+      mag_nd_lp_head;
+  float acc_lp[3][2];         /* [a]_I [m/s^2], tau_acc (Alg. 1 l. 10) */
+  float rest_gyr_bank[3][2];  /* gyro [rad/s], tau_rest (R1) */
+  float rest_acc_bank[3][2];  /* acc [m/s^2], tau_rest (R2) */
+  float bias_r_lp[9][2];      /* R(q_6D), row-major, tau_acc (B3) */
+  float bias_rb_lp[2][2];     /* (R b)_xy [rad/s], tau_acc (B3) */
+  float mag_nd_lp[2][2];      /* field norm [unit of mag] and dip [rad], tau_mag,current (M1) */
 } tcf_vqf_t;
 
 /* The coefficients a learned filter may change from sample to sample (CoreModulation of

@@ -23,8 +23,8 @@
 #error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_TAU (re-export it)"
 #endif
 
-#if !defined(TCF_VQFT_BACKOFF_MEASURED)
-#error "tcf_config.h must define TCF_VQFT_BACKOFF_MEASURED (re-export it)"
+#if !defined(TCF_VQFT_MAG_BACKOFF_MEASURED)
+#error "tcf_config.h must define TCF_VQFT_MAG_BACKOFF_MEASURED (re-export it)"
 #endif
 
 #if !defined(TCF_VQFT_NOISE_ACC) || !defined(TCF_VQFT_NOISE_MAG)
@@ -54,7 +54,7 @@ static int tcf_vqft_changed(const tcf_vqft_t *f, const tcf_prediction_t *pred) {
   int s;
   for (s = 0; s < TCF_N_CLASSES; ++s)
     if (tcf_vqft_differ(pred->probabilities[s], last->probabilities[s])) return 1;
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)
+  if (TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f)
     for (s = 0; s < 3; ++s)
       if (tcf_vqft_differ(pred->eta_acc[s], last->eta_acc[s]) || tcf_vqft_differ(pred->eta_mag[s], last->eta_mag[s]))
         return 1;
@@ -96,23 +96,23 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const tcf_prediction_t *pred) {
     lg = lam * mg + (1.0f - lam) * lg;
     lc = lam * mc + (1.0f - lam) * lc;
   }
-  f->trust = lam;
-  f->follow[0] = la;  /* the targets of tcf_vqft_follow */
-  f->follow[1] = lm;
-  f->follow[4] = 0.0f;
+  f->trust_now = lam;
+  f->ln_tau_acc_target = la;  /* the targets of tcf_vqft_follow */
+  f->ln_tau_mag_target = lm;
+  f->mag_disturbance_predicted = 0.0f;
 #if TCF_VQFT_FOLLOW
-  la = f->follow[2];  /* tau_acc, tau_mag: the followed values (tcf_vqft_follow moves them) */
-  lm = f->follow[3];
+  la = f->ln_tau_acc_now;  /* tau_acc, tau_mag: the followed values (tcf_vqft_follow moves them) */
+  lm = f->ln_tau_mag_now;
 #endif
-  f->tau_acc = expf(la);
-  f->tau_mag = expf(lm);
-  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, expf(ls), &f->mod);  /* step 3 */
+  f->tau_acc_now = expf(la);
+  f->tau_mag_now = expf(lm);
+  tcf_vqf_mod_from(&f->core, f->tau_acc_now, f->tau_mag_now, expf(ls), &f->mod);  /* step 3 */
   f->mod.rest_th_gyr_sq = expf(2.0f * lg);
   f->mod.rest_th_acc_sq = expf(2.0f * lc);
-  f->follow[5] = f->mod.k_mag;
+  f->k_mag_now = f->mod.k_mag;
 #if TCF_USE_MAG
-  if (TCF_VQFT_MAG_DIST_SCALE > 0.0f)  /* the predicted disturbance (|eta_m| / sigma_m)^2 (0 for NaN: none) */
-    f->follow[4] = tcf_predicted_disturbance(pred, TCF_VQFT_MAG_DIST_SCALE);
+  if (TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f)  /* the predicted disturbance (|eta_m| / sigma_m)^2 (0 for NaN: none) */
+    f->mag_disturbance_predicted = tcf_predicted_disturbance(pred, TCF_VQFT_MAG_DISTURBANCE_SCALE);
 #endif
 }
 
@@ -122,20 +122,20 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const tcf_prediction_t *pred) {
    sample, without the Python filter's snap at 1e-9: in float32 the step stalls within an ulp of the target
    anyway */
 static void tcf_vqft_follow(tcf_vqft_t *f) {
-  float *w = f->follow;
   tcf_vqf_mod_t m;
-  w[2] += f->follow_gain * (w[0] - w[2]);
-  w[3] += f->follow_gain * (w[1] - w[3]);
-  f->tau_acc = expf(w[2]);
-  f->tau_mag = expf(w[3]);
-  tcf_vqf_mod_from(&f->core, f->tau_acc, f->tau_mag, 1.0f, &m);  /* only acc_lp and k_mag are taken (sigma unused) */
+  f->ln_tau_acc_now += f->modulation_gain * (f->ln_tau_acc_target - f->ln_tau_acc_now);
+  f->ln_tau_mag_now += f->modulation_gain * (f->ln_tau_mag_target - f->ln_tau_mag_now);
+  f->tau_acc_now = expf(f->ln_tau_acc_now);
+  f->tau_mag_now = expf(f->ln_tau_mag_now);
+  /* only acc_lp and k_mag are taken (sigma unused) */
+  tcf_vqf_mod_from(&f->core, f->tau_acc_now, f->tau_mag_now, 1.0f, &m);
   f->mod.acc_lp = m.acc_lp;
-  f->follow[5] = m.k_mag;
+  f->k_mag_now = m.k_mag;
 }
 #endif
 
 #if TCF_USE_MAG
-#if TCF_VQFT_BACKOFF_MEASURED
+#if TCF_VQFT_MAG_BACKOFF_MEASURED
 /* _field_deviation_sq: the disturbance the magnetometer shows [uT^2], the least |m - m_ref|^2 over the
    unknown azimuth: n^2 + n_ref^2 - 2 n n_ref cos(d - d_ref), dip d in the last output's earth frame;
    0 without a reference or for an invalid sample */
@@ -143,7 +143,7 @@ static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
   float n_ref = c->mag_ref_norm, n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2], n, me[3], mz, d2;
   if (!(n_ref > 0.0f && n2 > 0.0f && n2 < INFINITY)) return 0.0f;
   n = sqrtf(n2);
-  tcf_vqf_rotate(c->q, m, me);
+  tcf_vqf_rotate(c->quat, m, me);
   mz = me[2] / n;
   d2 = n2 + n_ref * n_ref - 2.0f * n * n_ref * cosf(-asinf(mz < -1.0f ? -1.0f : (mz > 1.0f ? 1.0f : mz))
                                                        - c->mag_ref_dip);
@@ -153,12 +153,13 @@ static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
 
 /* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, at most the core's
    rejection factor - 1 (the learned back-off slows the heading correction no more than the core's
-   own), with TCF_VQFT_BACKOFF_MEASURED at most the one the magnetometer shows instead */
+   own), with TCF_VQFT_MAG_BACKOFF_MEASURED at most the one the magnetometer shows instead */
 static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
-  float e = f->follow[4];
+  float e = f->mag_disturbance_predicted;
   if (e > 0.0f) {
-#if TCF_VQFT_BACKOFF_MEASURED
-    float em = tcf_vqft_field_deviation_sq(&f->core, mag) / (TCF_VQFT_MAG_DIST_SCALE * TCF_VQFT_MAG_DIST_SCALE);
+#if TCF_VQFT_MAG_BACKOFF_MEASURED
+    float em = tcf_vqft_field_deviation_sq(&f->core, mag)
+               / (TCF_VQFT_MAG_DISTURBANCE_SCALE * TCF_VQFT_MAG_DISTURBANCE_SCALE);
 #else
     float em = f->core.c.mag_rejection_factor - 1.0f;
     (void)mag;  /* only the measured law reads the field */
@@ -166,7 +167,7 @@ static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
 #endif
     if (em < e) e = em;
   }
-  f->mod.k_mag = tcf_back_off(f->follow[5], e);
+  f->mod.k_mag = tcf_back_off(f->k_mag_now, e);
 }
 #endif
 
@@ -182,7 +183,7 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   tcf_vqft_follow(f);
 #endif
 #if TCF_USE_MAG
-  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DIST_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
+  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
 #endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
   /* step 4, the learned VQF's rule: whenever eta is finite, whatever the probabilities; a sensor whose
@@ -207,15 +208,15 @@ int tcf_vqft_init(tcf_vqft_t *f, float fs) {
   tcf_vqf_base_mod(&f->core, &f->mod);  /* no prediction seen yet: the core's coefficients */
   for (s = 0; s < TCF_N_PRED; ++s) nan_row[s] = NAN;
   tcf_prediction_from_row(nan_row, &f->last_p);  /* none seen yet */
-  f->tau_acc = p.tau_acc;
-  f->tau_mag = p.tau_mag;
-  f->trust = 0.0f;
-  f->follow[0] = f->follow[2] = TCF_VQFT_LN_TAU_ACC_CORE;
-  f->follow[1] = f->follow[3] = TCF_VQFT_LN_TAU_MAG_CORE;
-  f->follow[4] = 0.0f;
-  f->follow[5] = f->mod.k_mag;
+  f->tau_acc_now = p.tau_acc;
+  f->tau_mag_now = p.tau_mag;
+  f->trust_now = 0.0f;
+  f->ln_tau_acc_target = f->ln_tau_acc_now = TCF_VQFT_LN_TAU_ACC_CORE;
+  f->ln_tau_mag_target = f->ln_tau_mag_now = TCF_VQFT_LN_TAU_MAG_CORE;
+  f->mag_disturbance_predicted = 0.0f;
+  f->k_mag_now = f->mod.k_mag;
   /* gain_from_tau(modulation_tau, Ts) of the Python filter; -expm1f: exact for Ts << tau */
-  f->follow_gain = TCF_VQFT_MODULATION_TAU > 0.0f ? -expm1f(-f->core.c.ts / TCF_VQFT_MODULATION_TAU) : 1.0f;
+  f->modulation_gain = TCF_VQFT_MODULATION_TAU > 0.0f ? -expm1f(-f->core.c.ts / TCF_VQFT_MODULATION_TAU) : 1.0f;
   return TCF_OK;
 }
 

@@ -50,15 +50,23 @@
 extern "C" {
 #endif
 
+/* The state: the names of VQFTogglingFilter's state record (filters.vqf_toggling.STATE_FIELDS) and
+   coefficients (VQFTogglingCoefficients); tests/test_names.py compares them. */
 typedef struct tcf_vqft {
-  tcf_vqf_t core;          /* the VQF core (its settings' coefficients inside) */
-  tcf_features_t feat;     /* feature window and held prediction */
+  tcf_vqf_t core;          /* the VQF core: its state and its settings' coefficients */
+  tcf_features_t feat;     /* feature window and held prediction (the models, toggling.inloop) */
   tcf_vqf_mod_t mod;       /* coefficients in use (steps 1-3 of the last prediction change) */
   tcf_prediction_t last_p;  /* the prediction the modulation was made from (NaN: none) */
-  float tau_acc, tau_mag, trust;  /* tau_acc, tau_mag [s] and lambda in use (diagnostics) */
-  float follow[6];  /* target ln tau_acc, ln tau_mag; the followed ones (modulation_tau); the predicted
-                       disturbance (|eta_m| / sigma_m)^2; k_mag before the back-off */
-  float follow_gain;  /* 1 - exp(-Ts / modulation_tau) at the init rate (1: at once) */
+  float tau_acc_now;        /* tau_acc in use [s] (diagnostic) */
+  float tau_mag_now;        /* tau_mag in use [s] (diagnostic) */
+  float trust_now;          /* lambda in use, in [0, 1] (diagnostic) */
+  float ln_tau_acc_target;  /* ln tau_acc [ln s] of the last modulation (step 2) */
+  float ln_tau_mag_target;  /* ln tau_mag [ln s] of the last modulation */
+  float ln_tau_acc_now;     /* ln tau_acc [ln s] followed towards its target (modulation_tau) */
+  float ln_tau_mag_now;     /* ln tau_mag [ln s] likewise */
+  float mag_disturbance_predicted;  /* the predicted disturbance (|eta_m| / sigma_m)^2 (step 3) */
+  float k_mag_now;          /* 1 - exp(-Ts / tau_mag_now): k_mag before the back-off */
+  float modulation_gain;    /* 1 - exp(-Ts / modulation_tau) at the init rate (1: at once) */
 } tcf_vqft_t;
 
 /* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,

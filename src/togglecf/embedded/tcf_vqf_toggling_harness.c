@@ -68,9 +68,9 @@ int main(int argc, char **argv) {
     if (h.diag) {
       float *d = h.dg + N_DIAG * s;
       tcf_vqft_prediction(&f, d);
-      d[TCF_N_PRED] = f.tau_acc;
-      d[TCF_N_PRED + 1] = f.tau_mag;
-      d[TCF_N_PRED + 2] = f.trust;
+      d[TCF_N_PRED] = f.tau_acc_now;
+      d[TCF_N_PRED + 1] = f.tau_mag_now;
+      d[TCF_N_PRED + 2] = f.trust_now;
       d[TCF_N_PRED + 3] = (float)tcf_features_fallback(&f.feat);
       d[TCF_N_PRED + 4] = (float)tcf_vqf_rest(&f.core);
       d[TCF_N_PRED + 5] = (float)tcf_vqf_mag_disturbed(&f.core);

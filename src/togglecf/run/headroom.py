@@ -55,7 +55,7 @@ from togglecf.run.sweep import run_sweep
 from togglecf.toggling.gains import VQFGainSearch, describe_gains
 
 __all__ = ["ROWS", "ORACLE_ROWS", "LABELS", "METRICS", "HeadroomSettings", "headroom_settings", "finest_partition",
-           "dataset_headroom", "group_mean", "headroom_table", "headroom_json",
+           "held_out_tagp", "dataset_headroom", "group_mean", "headroom_table", "headroom_json",
            "run_headroom"]
 
 log = logging.getLogger(__name__)
@@ -171,6 +171,24 @@ def _true_label_rows(trials: dict, folds, preds: dict, states, settings: Headroo
     return rows, info
 
 
+def held_out_tagp(names, folds, keys, res) -> tuple[dict, list]:
+    """Each fold's TAGP on its training trials (``names`` not in the fold), scored on its test trials.
+
+    Args:
+        names: the trials.
+        folds: test sets (lists of names), e.g. ``learn.folds.trial_folds``.
+        keys: the grid's parameter dicts; ``res[i]``: trial -> ``TrialResult`` of ``keys[i]``.
+    Returns ``(rows, info)``: trial -> {"total", "heading", "inclination"} [deg] at its fold's pair, and
+    per fold ``{"fold", "test", "tagp" (parameters), "train_mean_total" [deg]}``."""
+    rows, info = {}, []
+    for k, test in enumerate(folds):
+        train = [n for n in names if n not in test]
+        i, params, train_mean = tagp_on(train, keys, res)
+        rows.update({n: _errors(res[i][n].errors) for n in test})
+        info.append({"fold": k, "test": list(test), "tagp": params, "train_mean_total": train_mean})
+    return rows, info
+
+
 def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=None) -> dict:
     """Every row of ``ROWS`` on every trial of one dataset (``data_dir``, BROAD's layout; ``trials``: a
     selection, ``DatasetIndex.select``); ``store``: a ``run.sweep.ResultStore`` that keeps the grid's
@@ -198,12 +216,7 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
         rows["offline"][n] = _errors(trial_errors(_vqf_package(t, offline=True), t.opt_quat, t.movement))
 
     folds = trial_folds(names, min(settings.folds, len(names)), settings.fold_seed)
-    fold_info = []
-    for k, test in enumerate(folds):
-        train = [n for n in names if n not in test]
-        i, params, train_mean = tagp_on(train, keys, res)
-        rows["tagp_held_out"].update({n: _errors(res[i][n].errors) for n in test})
-        fold_info.append({"fold": k, "test": test, "tagp": params, "train_mean_total": train_mean})
+    rows["tagp_held_out"], fold_info = held_out_tagp(names, folds, keys, res)
 
     i_all, pair_all, _ = tagp_on(names, keys, res)
     rows["tagp_in_sample"] = {n: _errors(res[i_all][n].errors) for n in names}

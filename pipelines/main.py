@@ -22,6 +22,9 @@ cross-dataset protocol.
    and the no-harm check of step 4 (``togglecf.run.pretrained``) -> reports/pretrained/
    (learned_vqf.npz, MODEL_CARD.md); ``python pipelines/ship_pretrained.py`` puts them in the package
    when every check passed, and says whether the package's copy was the same.
+6. With ``--full``: the headroom over VQF on every dataset of step 4 (``togglecf.run.headroom``: VQF at its
+   defaults, its two time constants tuned held out and as oracles, per-state time constants driven by the
+   true motion labels, VQF's offline estimate) -> reports/headroom/ (as ``python pipelines/headroom.py``).
 
 Computed once, on one pool: the baseline grids of step 1 and Madgwick's grid of step 4 run first
 (their results are kept in build/cache/, keyed on the package's source and each trial file, and
@@ -34,7 +37,7 @@ instead of each compiling them at once. The gain searches reuse an evaluation th
 (``toggling.gains.EvaluationMemo``). Each step's wall time is logged, and all of them at the end.
 
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
-    python pipelines/main.py --full            # + the study's ablations, step 3: what every table in
+    python pipelines/main.py --full            # + the study's ablations, steps 3 and 6: what every table in
                                                #   docs/results comes from
     python pipelines/main.py --lodo-only       # steps 4 and 5 alone
     python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
@@ -58,6 +61,7 @@ from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_di
 from togglecf.data.download import download_broad
 from togglecf.parallel.backend import BackendError, LocalBackend, Task, make_backend, run_tasks
 from togglecf.run.config import load_config
+from togglecf.run.headroom import headroom_settings, run_headroom
 from togglecf.run.lodo import dataset_dirs, lodo_json, lodo_table, plan_lodo
 from togglecf.run.pretrained import train_pretrained_models, write_pretrained
 from togglecf.run.study import load_study_config, plan_study, run_study
@@ -72,6 +76,7 @@ TRANSFER_DIR = Path("reports/transfer")
 BOTH_DIR = Path("reports/study_both")
 LODO_DIR = Path("reports/lodo")
 PRETRAINED_DIR = Path("reports/pretrained")
+HEADROOM_DIR = Path("reports/headroom")
 CACHE_DIR = Path("build/cache")
 log = logging.getLogger("togglecf.main")
 
@@ -179,6 +184,8 @@ def main(argv=None) -> int:
         if lodo is not None:
             write_lodo(lodo.finish(done), lodo.dirs, command)
         pretrained(broad, trained=True)
+        if args.full and not args.lodo_only:
+            headroom(broad, store, command)
     log.info("make run: " + ", ".join(f"{k} {v / 60:.1f}" for k, v in STEP_TIMES.items())
              + f"; total {(time.perf_counter() - t0) / 60:.1f} min")
     return 0
@@ -241,6 +248,13 @@ def write_lodo(results: dict, dirs, command: str) -> None:
     atomic_write_text(LODO_DIR / "lodo.md", text)
     atomic_write_json(LODO_DIR / "lodo.json", lodo_json(results))
     print(text)
+
+
+def headroom(broad: Path, store: ResultStore, command: str) -> None:
+    """reports/headroom on BROAD and every dataset beside it (``run.headroom``; the core's grid in ``store``)."""
+    with step("headroom"):
+        run_headroom(dataset_dirs(broad), HEADROOM_DIR, headroom_settings(), command, store=store)
+    print((HEADROOM_DIR / "headroom.md").read_text())
 
 
 def sensor(broad: Path, phone: Path, command: str) -> None:

@@ -3,7 +3,7 @@
     python pipelines/regenerate_docs.py [--study reports/study] [--bench [--quick]] [--bench-dask]
                                         [--sweep build/embedded/default/sweep] [--export build/embedded/default]
                                         [--models models/default]
-                                        [--lodo reports/lodo] [--out docs/results]
+                                        [--lodo reports/lodo] [--headroom reports/headroom] [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
 ``pymdownx.snippets`` (``--8<-- "docs/results/study_summary.md"``). Each file starts with a line
@@ -28,6 +28,8 @@ placeholder saying how to produce it when there is no file yet):
   read: ``filter/filter_report.json``): ``embedded_sizes.md``.
 * ``--models DIR`` (default ``models/default``; read: ``cv_table.txt``): ``train_cv.md``.
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
+* ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``make run --full``'s
+  headroom step): ``headroom.md``.
 * always: ``filter_defaults.md``, every filter's settings and defaults, from the code; and (with
   the default ``--out``) the figures of the docs that a command draws (``DOC_FIGURES``, e.g.
   ``docs/euler_05.png`` by ``togglecf plot euler``), when BROAD is found.
@@ -489,6 +491,8 @@ def main(argv=None) -> int:
                         "reports/study_both)")
     p.add_argument("--lodo", default=None, metavar="DIR",
                    help="the leave-one-dataset-out output of `make run` (default: reports/lodo if present)")
+    p.add_argument("--headroom", default=None, metavar="DIR",
+                   help="the headroom over VQF (pipelines/headroom.py; default: reports/headroom if present)")
     p.add_argument("--out", default=str(REPO / "docs" / "results"), metavar="DIR")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -518,6 +522,14 @@ def main(argv=None) -> int:
         if args.lodo:
             p.error(f"{lodo}: no lodo.md (run `make run` with at least two datasets in BROAD's layout)")
         placeholder(out, "lodo.md", "`reports/lodo/lodo.md`", "Run `make run` with the phone data beside BROAD.")
+
+    headroom = Path(args.headroom) if args.headroom else REPO / "reports" / "headroom"
+    if (headroom / "headroom.md").is_file():
+        write(out, "headroom.md", (headroom / "headroom.md").read_text())
+    else:
+        if args.headroom:
+            p.error(f"{headroom}: no headroom.md (run `python pipelines/headroom.py --out {headroom}`)")
+        placeholder(out, "headroom.md", "`reports/headroom/headroom.md`", "Run `python pipelines/headroom.py`.")
 
     if args.spread:
         dirs = [Path(d) for d in args.spread.split(",") if d]

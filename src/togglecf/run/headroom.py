@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core.extras import require
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex
@@ -135,12 +136,11 @@ def _errors(r) -> dict:
 
 def _vqf_package(trial, offline: bool) -> np.ndarray:
     """The ``vqf`` package's 9D quaternion ``(N, 4)`` at its defaults, online or offline."""
-    from vqf import VQF, offlineVQF
-
+    vqf = require("vqf", extra="vqf", what="the vqf package's online check and offline estimate")
     gyr, acc, mag = (np.ascontiguousarray(a, dtype=float) for a in (trial.gyr, trial.acc, trial.mag))
     if offline:
-        return offlineVQF(gyr, acc, mag, 1.0 / trial.fs)["quat9D"]
-    return VQF(1.0 / trial.fs).updateBatch(gyr, acc, mag)["quat9D"]
+        return vqf.offlineVQF(gyr, acc, mag, 1.0 / trial.fs)["quat9D"]
+    return vqf.VQF(1.0 / trial.fs).updateBatch(gyr, acc, mag)["quat9D"]
 
 
 def _true_label_rows(trials: dict, folds, preds: dict, states, settings: HeadroomSettings, tagp: list) -> tuple:

@@ -470,6 +470,18 @@ def filter_defaults(out: Path, command: str) -> None:
           + md_table(["CLI name", "class", "settings", "defaults"], rows))
 
 
+def copy_run_table(parser, out: Path, name: str, given, how_given: str, how_default: str) -> None:
+    """``<name>.md`` copied as its run wrote it from ``given`` (a directory; ``None``: ``reports/<name>``
+    when there, else a placeholder saying ``how_default``); a given directory without it is an error."""
+    src = Path(given) if given else REPO / "reports" / name
+    if (src / f"{name}.md").is_file():
+        write(out, f"{name}.md", (src / f"{name}.md").read_text())
+    elif given:
+        parser.error(f"{src}: no {name}.md ({how_given})")
+    else:
+        placeholder(out, f"{name}.md", f"`reports/{name}/{name}.md`", how_default)
+
+
 # --------------------------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
@@ -515,21 +527,10 @@ def main(argv=None) -> int:
     elif args.transfer:
         p.error(f"{transfer}: not found (run `make run`)")
 
-    lodo = Path(args.lodo) if args.lodo else REPO / "reports" / "lodo"
-    if (lodo / "lodo.md").is_file():
-        write(out, "lodo.md", (lodo / "lodo.md").read_text())
-    else:
-        if args.lodo:
-            p.error(f"{lodo}: no lodo.md (run `make run` with at least two datasets in BROAD's layout)")
-        placeholder(out, "lodo.md", "`reports/lodo/lodo.md`", "Run `make run` with the phone data beside BROAD.")
-
-    headroom = Path(args.headroom) if args.headroom else REPO / "reports" / "headroom"
-    if (headroom / "headroom.md").is_file():
-        write(out, "headroom.md", (headroom / "headroom.md").read_text())
-    else:
-        if args.headroom:
-            p.error(f"{headroom}: no headroom.md (run `python pipelines/headroom.py --out {headroom}`)")
-        placeholder(out, "headroom.md", "`reports/headroom/headroom.md`", "Run `python pipelines/headroom.py`.")
+    copy_run_table(p, out, "lodo", args.lodo, "run `make run` with at least two datasets in BROAD's layout",
+                   "Run `make run` with the phone data beside BROAD.")
+    copy_run_table(p, out, "headroom", args.headroom, "run `python pipelines/headroom.py`",
+                   "Run `python pipelines/headroom.py`.")
 
     if args.spread:
         dirs = [Path(d) for d in args.spread.split(",") if d]

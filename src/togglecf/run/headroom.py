@@ -335,7 +335,7 @@ def run_headroom(dirs, out_dir, settings: HeadroomSettings, command: str, trials
     results = [dataset_headroom(d, settings, trials, store) for d in dirs]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "headroom.md", headroom_table(results, command, revision) + "\n")
+    atomic_write_text(out / "headroom.md", headroom_table(results, command, revision))
     atomic_write_json(out / "headroom.json", headroom_json(results))
     log.info(f"headroom: {out / 'headroom.md'}")
     return results

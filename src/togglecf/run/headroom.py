@@ -72,7 +72,7 @@ LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in
           "true_labels_tagp": "true labels from TAGP", "offline": "offline VQF"}
 #: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)
 METRICS = ("total", "heading", "inclination")
-#: the core's filter name (``registry``) and its default time constants [s]
+#: the core's filter name (``registry``), run at VQF's defaults when given no parameters
 CORE = "vqf_core"
 
 
@@ -118,9 +118,10 @@ def headroom_settings(quick: bool = False, jobs: int | None = None) -> HeadroomS
 
 
 def finest_partition(groups: dict, names) -> list[str]:
-    """The groups (of ``groups``: name -> members) that split ``names`` into disjoint parts, as many as
-    possible: the smallest groups first, each taken when it overlaps none taken before. Empty when they
-    do not cover ``names`` (the "all" row of the group oracle is then the in-sample TAGP)."""
+    """The groups (of ``groups``: name -> members) that split ``names`` into disjoint parts, chosen
+    greedily for many small parts: the smallest groups first, each taken when it overlaps none taken
+    before. Empty when they do not cover ``names`` (the "all" row of the group oracle is then the
+    in-sample TAGP)."""
     present = {g: set(m) & set(names) for g, m in groups.items()}
     taken, covered = [], set()
     for g in sorted((g for g in present if present[g]), key=lambda g: (len(present[g]), g)):

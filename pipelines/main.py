@@ -22,8 +22,10 @@ cross-dataset protocol.
    and the no-harm check of step 4 (``togglecf.run.pretrained``) -> reports/pretrained/
    (learned_vqf.npz, MODEL_CARD.md); ``python pipelines/ship_pretrained.py`` puts them in the package
    when every check passed, and says whether the package's copy was the same.
-
-6. With ``--full``, your sensor, measured: on each dataset alone (folds within it), the learned VQF
+6. With ``--full``: the headroom over VQF on every dataset of step 4 (``togglecf.run.headroom``: VQF at its
+   defaults, its two time constants tuned held out and as oracles, per-state time constants driven by the
+   true motion labels, VQF's offline estimate) -> reports/headroom/ (as ``python pipelines/headroom.py``).
+7. With ``--full``, your sensor, measured: on each dataset alone (folds within it), the learned VQF
    re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
    training recordings, against VQF at its defaults and tuned on the same recordings
    (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md.
@@ -39,7 +41,7 @@ instead of each compiling them at once. The gain searches reuse an evaluation th
 (``toggling.gains.EvaluationMemo``). Each step's wall time is logged, and all of them at the end.
 
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
-    python pipelines/main.py --full            # + the study's ablations, steps 3 and 6: what every table in
+    python pipelines/main.py --full            # + the study's ablations, steps 3, 6 and 7: what every table in
                                                #   docs/results comes from
     python pipelines/main.py --lodo-only       # steps 4 and 5 alone
     python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
@@ -63,6 +65,7 @@ from togglecf.data.broad import DataNotFoundError, DatasetIndex, resolve_data_di
 from togglecf.data.download import download_broad
 from togglecf.parallel.backend import BackendError, LocalBackend, Task, make_backend, run_tasks
 from togglecf.run.config import load_config
+from togglecf.run.headroom import headroom_settings, run_headroom
 from togglecf.run.lodo import dataset_dirs, lodo_json, lodo_table, plan_lodo
 from togglecf.run.per_sensor import base_models, per_sensor, per_sensor_json, per_sensor_table
 from togglecf.run.pretrained import train_pretrained_models, write_pretrained
@@ -80,6 +83,7 @@ LODO_DIR = Path("reports/lodo")
 PRETRAINED_DIR = Path("reports/pretrained")
 PER_SENSOR_DIR = Path("reports/per_sensor")
 LODO_BUILD_DIR = Path("build/lodo")
+HEADROOM_DIR = Path("reports/headroom")
 CACHE_DIR = Path("build/cache")
 log = logging.getLogger("togglecf.main")
 
@@ -188,6 +192,8 @@ def main(argv=None) -> int:
         if lodo is not None:
             write_lodo(lodo.finish(done), lodo.dirs, command)
         pretrained(broad, trained=True)
+        if args.full and not args.lodo_only:
+            headroom(broad, store, command)
         if args.full and lodo is not None:
             each_sensor(lodo.dirs, command, store)
     log.info("make run: " + ", ".join(f"{k} {v / 60:.1f}" for k, v in STEP_TIMES.items())
@@ -255,7 +261,7 @@ def write_lodo(results: dict, dirs, command: str) -> None:
 
 
 def each_sensor(dirs, command: str, store: ResultStore) -> None:
-    """Step 6 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
+    """Step 7 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
     datasets' models of step 4 (``run.per_sensor``) -> reports/per_sensor."""
     with step("per sensor"):
         out = Path("build/per_sensor")
@@ -265,6 +271,13 @@ def each_sensor(dirs, command: str, store: ResultStore) -> None:
     atomic_write_text(PER_SENSOR_DIR / "per_sensor.md", text)
     atomic_write_json(PER_SENSOR_DIR / "per_sensor.json", per_sensor_json(results))
     print(text)
+
+
+def headroom(broad: Path, store: ResultStore, command: str) -> None:
+    """reports/headroom on BROAD and every dataset beside it (``run.headroom``; the core's grid in ``store``)."""
+    with step("headroom"):
+        run_headroom(dataset_dirs(broad), HEADROOM_DIR, headroom_settings(), command, store=store)
+    print((HEADROOM_DIR / "headroom.md").read_text())
 
 
 def sensor(broad: Path, phone: Path, command: str) -> None:

@@ -4,7 +4,7 @@
                                         [--sweep build/embedded/default/sweep] [--export build/embedded/default]
                                         [--models models/default]
                                         [--lodo reports/lodo] [--per-sensor reports/per_sensor]
-                                        [--out docs/results]
+                                        [--headroom reports/headroom] [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
 ``pymdownx.snippets`` (``--8<-- "docs/results/study_summary.md"``). Each file starts with a line
@@ -35,9 +35,11 @@ placeholder saying how to produce it when there is no file yet):
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
 * ``--per-sensor DIR`` (default ``reports/per_sensor``, the per-sensor step of ``main.py --full`` or
   ``pipelines/per_sensor.py``): ``per_sensor.md``.
+* ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``main.py --full``'s
+  headroom step): ``headroom.md``.
 
-The tables a pipeline writes with its own header (``lodo.md``, ``per_sensor.md``, the transfer tables)
-are copied as they are (``RUN_TABLES``): their first line names the command that made them.
+The tables a pipeline writes with its own header (``lodo.md``, ``per_sensor.md``, ``headroom.md``, the
+transfer tables) are copied as they are (``RUN_TABLES``): their first line names the command that made them.
 * always: ``filter_defaults.md``, every filter's settings and defaults, from the code; and (with
   the default ``--out``) the figures of the docs that a command draws (``DOC_FIGURES``, e.g.
   ``docs/euler_05.png`` by ``togglecf plot euler``), when BROAD is found.
@@ -499,6 +501,8 @@ RUN_TABLES = (
     RunTable("per_sensor", "reports/per_sensor", "per_sensor.md",
              "the per-sensor output of `python pipelines/main.py --full` or `pipelines/per_sensor.py`",
              "Run `python pipelines/per_sensor.py` (or `python pipelines/main.py --full`)."),
+    RunTable("headroom", "reports/headroom", "headroom.md", "the headroom over VQF (pipelines/headroom.py)",
+             "Run `python pipelines/headroom.py` (or `python pipelines/main.py --full`)."),
 )
 
 

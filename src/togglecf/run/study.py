@@ -47,7 +47,8 @@ from togglecf.run.train import TrainedModels, run_training
 from togglecf.toggling.gains import GainSearch, VQFGainSearch, describe_gains, learn_gains, mode_name
 from togglecf.toggling.load import IN_LOOP
 
-__all__ = ["StudyConfig", "StudyPlan", "load_study_config", "plan_study", "run_study"]
+__all__ = ["StudyConfig", "StudyPlan", "load_study_config", "plan_study", "run_study", "tagp_on", "oracle_predictions",
+           "learn_vqf_variant", "vqf_variant_errors"]
 
 DEFAULT_STUDY_CONFIG = config_path("study.toml")
 ABLATIONS = ("toggling_only", "noise_only", "6d", "ransac_off", "vqf_taus_only", "vqf_oracle", "madgwick_rest_bias")
@@ -167,8 +168,10 @@ def _baseline_grids(index, names, grids, use_mag, jobs, store=None):
     return out
 
 
-def _tagp_on(train_names, keys, res):
-    """BROAD's TAGP of a grid over the training trials only: (index, params, mean total RMSE)."""
+def tagp_on(train_names, keys, res):
+    """BROAD's TAGP of a grid over the named trials only (a fold's training trials): ``keys`` the grid's
+    parameter dicts, ``res[i]`` trial -> ``TrialResult`` of ``keys[i]``. Returns (index into ``keys``, its
+    parameters, their mean total RMSE [deg] over ``train_names``)."""
     grid = {k: list(dict.fromkeys(p[k] for p in keys)) for k in keys[0]}
     t = tagp(grid, {tuple(p.values()): {n: r[n].errors for n in train_names} for p, r in zip(keys, res)})
     i = keys.index(t.params)
@@ -434,7 +437,7 @@ def _baseline_rows(grids: dict, train, test, k: int, info: dict, suffix: str = "
     the chosen parameters go into ``info["baseline_tagp"]`` (9D only)."""
     rows = []
     for filt, (keys, res) in grids.items():
-        i, params, train_err = _tagp_on(train, keys, res)
+        i, params, train_err = tagp_on(train, keys, res)
         if not suffix:
             info.setdefault("baseline_tagp", {})[filt] = {"params": params, "train_mean_total": train_err}
         rows += [_row(n, filt + suffix, k, res[i][n].errors, res[i][n].us_per_sample, params) for n in test]
@@ -560,16 +563,28 @@ def _toggling_variant(job: _FoldJob, fold: _Fold, label: str, transform, search,
 def _vqf_variant(job: _FoldJob, fold: _Fold, label: str, preds: dict) -> list:
     """The learned VQF's time constants learned on ``preds`` without the noise removal, scored on the
     test trials with the same kind of predictions."""
-    search = replace(job.cfg.vqf_gains, noise_weight_acc=(0.0,), noise_weight_mag=(0.0,))
-    s, _ = learn_gains([fold.loaded[n] for n in fold.train], [preds[n] for n in fold.train], fold.models.class_names,
-                       fold.models.static_state, search=search, jobs=job.jobs)
+    s = learn_vqf_variant([fold.loaded[n] for n in fold.train], [preds[n] for n in fold.train],
+                          fold.models.class_names, fold.models.static_state, job.cfg.vqf_gains, jobs=job.jobs)
     fold.info.setdefault("ablation_gains", {})[label] = describe_gains(s)
-    rows = []
-    for n in fold.test:
-        t = fold.loaded[n]
-        o = VQFTogglingFilter(t.fs, s).update_batch(t.gyr, t.acc, t.mag, predictions=preds[n])
-        rows.append(_row(n, label, fold.k, trial_errors(o.quat, t.opt_quat, t.movement)))
-    return rows
+    return [_row(n, label, fold.k, vqf_variant_errors(s, fold.loaded[n], preds[n])) for n in fold.test]
+
+
+def learn_vqf_variant(trials, predictions, class_names, static_state, search: VQFGainSearch, jobs: int = 1,
+                      start=None):
+    """The learned VQF's per-state settings (``VQFTogglingSettings``) learned by ``search`` on ``trials``
+    fed ``predictions`` (one ``(N, S + 6)`` array per trial: the models', or ``oracle_predictions``),
+    without the noise removal (the noise weights held at 0); ``start``: the descent's starting settings
+    (default: the core's own, ``search.start``)."""
+    search = replace(search, noise_weight_acc=(0.0,), noise_weight_mag=(0.0,))
+    s, _ = learn_gains(trials, predictions, class_names, static_state, search=search, start=start, jobs=jobs)
+    return s
+
+
+def vqf_variant_errors(settings, trial, predictions) -> dict:
+    """BROAD's errors [deg] (``metrics.trial_errors``) of ``VQFTogglingFilter(settings)`` on ``trial`` (9D)
+    fed ``predictions`` ``(N, S + 6)``."""
+    o = VQFTogglingFilter(trial.fs, settings).update_batch(trial.gyr, trial.acc, trial.mag, predictions=predictions)
+    return trial_errors(o.quat, trial.opt_quat, trial.movement)
 
 
 def _ransac_off(job: _FoldJob, fold: _Fold) -> list:

@@ -1,0 +1,342 @@
+"""The headroom over VQF: how much better than VQF's defaults a causal modulation of VQF's two time
+constants can get on a dataset, and where.
+
+For one dataset (a directory in BROAD's layout), every trial is scored (BROAD's total, heading and
+inclination RMSE [deg], ``metrics.trial_errors``) with:
+
+* ``defaults``: the VQF core (``vqf_core``) at VQF's defaults (τ_acc 3 s, τ_mag 9 s); the ``vqf``
+  package's own online VQF is run beside it as a check (the largest per-trial difference is reported);
+* ``tagp_held_out``: the core at the τ_acc × τ_mag pair with the lowest mean total RMSE over each fold's
+  *training* trials (BROAD's TAGP; folds by whole trial, ``learn.folds.trial_folds``), scored on the
+  fold's test trials;
+* ``tagp_in_sample`` (oracle): the dataset-wide TAGP chosen on every trial, scored on the same trials;
+* ``group_oracle`` (oracle): per group of ``trials.json``, the pair best on that group's own trials; the
+  "all" row takes each trial at the best pair of its group in the finest partition of the trials by
+  groups (``finest_partition``);
+* ``trial_oracle`` (oracle): each trial at its own best pair;
+* ``true_labels``: the learned VQF's per-state settings driven by the *true* motion state
+  (``run.study.oracle_predictions``: what a perfect classifier would give), learned by the study's
+  search (``[gains.vqf]``, from VQF's defaults) on each fold's training trials, scored on its test
+  trials (the study's ``vqf_oracle`` ablation, within this dataset);
+* ``true_labels_tagp``: the same, with the descent started at the fold's TAGP and τ_acc, τ_mag searched
+  per state over the TAGP grid: the per-state ceiling above the held-out TAGP;
+* ``offline``: the ``vqf`` package's offline (non-causal) VQF at its defaults: the bound no causal
+  filter should pass.
+
+The oracle rows choose on the trials they are scored on (in-sample ceilings); every other tuned row is
+scored on trials its choice never saw. The pairs are chosen on the total RMSE; heading and inclination
+are reported at the chosen pair.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from togglecf.core.extras import require
+from togglecf.core.io import atomic_write_json, atomic_write_text
+from togglecf.core.provenance import source_revision
+from togglecf.data.broad import DatasetIndex
+from togglecf.filters.vqf_toggling import VQFTogglingSettings
+from togglecf.learn.folds import trial_folds
+from togglecf.learn.labels import LabelSettings, state_names
+from togglecf.metrics.broad import trial_errors
+from togglecf.parallel.backend import LocalBackend
+from togglecf.registry import FilterSpec
+from togglecf.run.config import load_config
+from togglecf.run.scoring import grid_points, score_trial
+from togglecf.run.study import (learn_vqf_variant, load_study_config, oracle_predictions, tagp_on,
+                                vqf_variant_errors)
+from togglecf.run.sweep import run_sweep
+from togglecf.toggling.gains import VQFGainSearch, describe_gains
+
+__all__ = ["ROWS", "ORACLE_ROWS", "LABELS", "METRICS", "HeadroomSettings", "headroom_settings", "finest_partition",
+           "held_out_tagp", "dataset_headroom", "group_mean", "headroom_table", "headroom_json",
+           "run_headroom"]
+
+log = logging.getLogger(__name__)
+
+#: the rows of the table, in order (``defaults`` first: every other is compared with it)
+ROWS = ("defaults", "tagp_held_out", "tagp_in_sample", "group_oracle", "trial_oracle", "true_labels",
+        "true_labels_tagp", "offline")
+#: rows chosen on the trials they are scored on (in-sample ceilings)
+ORACLE_ROWS = ("tagp_in_sample", "group_oracle", "trial_oracle")
+#: column headers of the table
+LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in_sample": "TAGP in-sample (oracle)",
+          "group_oracle": "group oracle", "trial_oracle": "trial oracle", "true_labels": "true labels",
+          "true_labels_tagp": "true labels from TAGP", "offline": "offline VQF"}
+#: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)
+METRICS = ("total", "heading", "inclination")
+#: the core's filter name (``registry``), run at VQF's defaults when given no parameters
+CORE = "vqf_core"
+
+
+@dataclass
+class HeadroomSettings:
+    """What ``dataset_headroom`` computes.
+
+    Attributes:
+        grid: τ_acc [s] and τ_mag [s] values of the core's grid (``{"tau_acc": [...], "tau_mag": [...]}``;
+            default the study's ``[baselines.vqf_core]``).
+        folds: number of folds by whole trial (at most the number of trials).
+        fold_seed: ``learn.folds.trial_folds``'s seed (0: round-robin over the sorted names, the study's).
+        search: the true-label rows' per-state search (default the study's ``[gains.vqf]``).
+        labels: the motion labels' settings (default the study's training config's ``[labels]`` and seed).
+        jobs: worker processes of the grid and the gain searches.
+    """
+
+    grid: dict = field(default_factory=dict)
+    folds: int = 5
+    fold_seed: int = 0
+    search: VQFGainSearch = field(default_factory=VQFGainSearch)
+    labels: LabelSettings = field(default_factory=LabelSettings)
+    jobs: int = 1
+
+
+#: the quick mode's grid and search (tests, a first look): a 2 x 2 grid around VQF's defaults
+QUICK_GRID = {"tau_acc": [1.0, 3.0], "tau_mag": [9.0, 30.0]}
+
+
+def headroom_settings(quick: bool = False, jobs: int | None = None) -> HeadroomSettings:
+    """The study's grid, folds, search and labels (``configs/study.toml`` and its training config);
+    ``quick``: a 2 x 2 grid and a one-value-per-coordinate search with τ_acc on two values."""
+    cfg = load_study_config()
+    train = load_config(cfg.train_config)
+    labels = LabelSettings.from_dict({**train["labels"], "seed": train["run"]["seed"]})
+    grid = {k: list(v) for k, v in cfg.baselines[CORE].items()}
+    search = cfg.vqf_gains
+    if quick:
+        grid = {k: list(v) for k, v in QUICK_GRID.items()}
+        search = replace(search, tau_acc=(1.0, 3.0), confidence_floor=(0.0,), mag_disturbance_scale=(0.0,))
+    return HeadroomSettings(grid=grid, folds=cfg.folds, fold_seed=cfg.fold_seed, search=search, labels=labels,
+                            jobs=jobs or os.cpu_count() or 1)
+
+
+def finest_partition(groups: dict, names) -> list[str]:
+    """The groups (of ``groups``: name -> members) that split ``names`` into disjoint parts, chosen
+    greedily for many small parts: the smallest groups first, each taken when it overlaps none taken
+    before. Empty when they do not cover ``names`` (the "all" row of the group oracle is then the
+    in-sample TAGP)."""
+    present = {g: set(m) & set(names) for g, m in groups.items()}
+    taken, covered = [], set()
+    for g in sorted((g for g in present if present[g]), key=lambda g: (len(present[g]), g)):
+        if not present[g] & covered:
+            taken.append(g)
+            covered |= present[g]
+    return sorted(taken) if covered == set(names) else []
+
+
+def _errors(r) -> dict:
+    return {m: float(r[m]) for m in METRICS}
+
+
+def _vqf_package(trial, offline: bool) -> np.ndarray:
+    """The ``vqf`` package's 9D quaternion ``(N, 4)`` at its defaults, online or offline."""
+    vqf = require("vqf", extra="vqf", what="the vqf package's online check and offline estimate")
+    gyr, acc, mag = (np.ascontiguousarray(a, dtype=float) for a in (trial.gyr, trial.acc, trial.mag))
+    if offline:
+        return vqf.offlineVQF(gyr, acc, mag, 1.0 / trial.fs)["quat9D"]
+    return vqf.VQF(1.0 / trial.fs).updateBatch(gyr, acc, mag)["quat9D"]
+
+
+def _true_label_rows(trials: dict, folds, preds: dict, states, settings: HeadroomSettings, tagp: list) -> tuple:
+    """Per fold: the study's search from VQF's defaults and, from the fold's TAGP, τ_acc, τ_mag per
+    state on the grid; each learned on the training trials fed ``preds`` (true labels) and scored on
+    the test trials. Returns ``(rows, info)``: row -> trial -> errors, and per fold the learned settings."""
+    static = next((c for c in ("rest", "static") if c in states), states[0])
+    wide = replace(settings.search, tau_acc=tuple(settings.grid["tau_acc"]), tau_mag=tuple(settings.grid["tau_mag"]))
+    rows = {"true_labels": {}, "true_labels_tagp": {}}
+    info = []
+    for k, test in enumerate(folds):
+        train = [n for n in trials if n not in test]
+        t0 = time.perf_counter()
+        p = tagp[k]
+        starts = {"true_labels": (settings.search, None),
+                  "true_labels_tagp": (wide, VQFTogglingSettings(states=tuple(states),
+                                                                 modulation_tau=float(wide.modulation_tau),
+                                                                 tau_acc=p["tau_acc"], tau_mag=p["tau_mag"]))}
+        fold = {}
+        for row, (search, start) in starts.items():
+            s = learn_vqf_variant([trials[n] for n in train], [preds[n] for n in train], states, static, search,
+                                  jobs=settings.jobs, start=start)
+            fold[row] = describe_gains(s)
+            rows[row].update({n: _errors(vqf_variant_errors(s, trials[n], preds[n])) for n in test})
+        info.append(fold)
+        log.info(f"  true labels, fold {k + 1}/{len(folds)} in {time.perf_counter() - t0:.0f} s: "
+                 + "; ".join(f"{r}: {v}" for r, v in fold.items()))
+    return rows, info
+
+
+def held_out_tagp(names, folds, keys, res) -> tuple[dict, list]:
+    """Each fold's TAGP on its training trials (``names`` not in the fold), scored on its test trials.
+
+    Args:
+        names: the trials.
+        folds: test sets (lists of names), e.g. ``learn.folds.trial_folds``.
+        keys: the grid's parameter dicts; ``res[i]``: trial -> ``TrialResult`` of ``keys[i]``.
+    Returns ``(rows, info)``: trial -> {"total", "heading", "inclination"} [deg] at its fold's pair, and
+    per fold ``{"fold", "test", "tagp" (parameters), "train_mean_total" [deg]}``."""
+    rows, info = {}, []
+    for k, test in enumerate(folds):
+        train = [n for n in names if n not in test]
+        i, params, train_mean = tagp_on(train, keys, res)
+        rows.update({n: _errors(res[i][n].errors) for n in test})
+        info.append({"fold": k, "test": list(test), "tagp": params, "train_mean_total": train_mean})
+    return rows, info
+
+
+def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=None) -> dict:
+    """Every row of ``ROWS`` on every trial of one dataset (``data_dir``, BROAD's layout; ``trials``: a
+    selection, ``DatasetIndex.select``); ``store``: a ``run.sweep.ResultStore`` that keeps the grid's
+    results. Returns a dict: ``name``, ``trials``, ``groups`` (name -> present members), ``partition``,
+    ``rows`` (row -> trial -> {"total", "heading", "inclination"} [deg]), ``folds`` (per fold its test
+    trials, the TAGP pair and its training mean, the true-label settings), ``group_pairs``, ``trial_pairs``,
+    ``label_coverage`` (fraction of samples with a true label), ``vqf_check`` (largest |Δ| [deg] of the
+    core at its defaults against the ``vqf`` package's online VQF) and ``grid``."""
+    t_start = time.perf_counter()
+    index = DatasetIndex.from_dir(data_dir)
+    names = index.select(trials)
+    log.info(f"headroom: {index.root.name}, {len(names)} trials")
+    loaded = {n: index.load(n) for n in names}
+    keys = grid_points(settings.grid)
+    t0 = time.perf_counter()
+    res = run_sweep(index, names, CORE, keys, backend=LocalBackend(settings.jobs), store=store,
+                    on_error="raise").results
+    log.info(f"  {CORE} grid: {len(keys)} points x {len(names)} trials in {time.perf_counter() - t0:.0f} s")
+    rows = {r: {} for r in ROWS}
+    check = {m: 0.0 for m in METRICS}
+    for n, t in loaded.items():
+        rows["defaults"][n] = _errors(score_trial(t, FilterSpec(CORE))[0].errors)
+        online = trial_errors(_vqf_package(t, offline=False), t.opt_quat, t.movement)
+        check = {m: max(check[m], abs(online[m] - rows["defaults"][n][m])) for m in METRICS}
+        rows["offline"][n] = _errors(trial_errors(_vqf_package(t, offline=True), t.opt_quat, t.movement))
+
+    folds = trial_folds(names, min(settings.folds, len(names)), settings.fold_seed)
+    rows["tagp_held_out"], fold_info = held_out_tagp(names, folds, keys, res)
+
+    i_all, pair_all, _ = tagp_on(names, keys, res)
+    rows["tagp_in_sample"] = {n: _errors(res[i_all][n].errors) for n in names}
+    groups = {g: [n for n in m if n in loaded] for g, m in sorted(index.groups.items())}
+    groups = {g: m for g, m in groups.items() if 0 < len(m) < len(names)}  # "all" is the row of every trial
+    group_pairs = {g: tagp_on(m, keys, res)[:2] for g, m in groups.items()}
+    group_rows = {g: {n: _errors(res[group_pairs[g][0]][n].errors) for n in m} for g, m in groups.items()}
+    partition = finest_partition(groups, names)
+    for g in partition:  # the "all" row of the group oracle: each trial at its part's pair
+        rows["group_oracle"].update(group_rows[g])
+    if not partition:
+        rows["group_oracle"] = dict(rows["tagp_in_sample"])
+    best = {n: min(range(len(keys)), key=lambda i: res[i][n].errors["total"]) for n in names}
+    rows["trial_oracle"] = {n: _errors(res[best[n]][n].errors) for n in names}
+
+    states = list(state_names(settings.labels.label_set))
+    preds = {n: oracle_predictions(loaded[n], settings.labels, states) for n in names}
+    coverage = float(np.mean(np.concatenate([np.isfinite(p[:, 0]) for p in preds.values()])))
+    true_rows, true_info = _true_label_rows(loaded, folds, preds, states, settings, [f["tagp"] for f in fold_info])
+    rows.update(true_rows)
+    for f, extra in zip(fold_info, true_info):
+        f["true_labels"] = extra
+    log.info(f"  {index.root.name} done in {time.perf_counter() - t_start:.0f} s")
+    return {"name": index.root.name, "trials": names, "groups": groups, "partition": partition, "rows": rows,
+            "folds": fold_info, "tagp_in_sample": pair_all,
+            "group_pairs": {g: p for g, (_, p) in group_pairs.items()}, "group_rows": group_rows,
+            "trial_pairs": {n: keys[best[n]] for n in names}, "label_coverage": coverage,
+            "vqf_check": check, "grid": settings.grid}
+
+
+def group_mean(result: dict, row: str, group: str, metric: str = "total") -> float:
+    """Mean ``metric`` [deg] of ``row`` over ``group``'s trials ("all": every trial) of a
+    ``dataset_headroom`` result. The group oracle's value of a group is at that group's own pair."""
+    if group == "all":
+        members, per = result["trials"], result["rows"][row]
+    else:
+        members = result["groups"][group]
+        per = result["group_rows"][group] if row == "group_oracle" else result["rows"][row]
+    return float(np.mean([per[n][metric] for n in members]))
+
+
+def _pair(p: dict) -> str:
+    return f"{p['tau_acc']:g} s, {p['tau_mag']:g} s"
+
+
+def _cell(value: float, ref: float, row: str) -> str:
+    if row == "defaults":
+        return f"{value:.2f}"
+    return f"{value:.2f} ({100.0 * (value / ref - 1.0):+.1f} %)".replace("-", "−")
+
+
+def headroom_table(results: list, command: str, revision: str | None = None) -> str:
+    """Markdown: per dataset (a ``dataset_headroom`` result) and metric, the mean RMSE [°] of every row
+    of ``ROWS`` per group (all trials first), each beside VQF's defaults as the relative change of the
+    mean; then the pairs each fold and group chose. The first line names ``command`` and the code that
+    ran (``revision``, default ``core.provenance.source_revision()`` now)."""
+    lines = [f"*Generated by `{command}` on {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC at "
+             f"{revision or source_revision()}. Do not edit: rerun the command.*", "",
+             "Mean RMSE [°] (BROAD's metric) over the trials of each group; in brackets the change against "
+             "*VQF defaults* (the VQF core at τ_acc 3 s, τ_mag 9 s). *TAGP held out*: the τ_acc × τ_mag pair "
+             "with the lowest mean total RMSE on each fold's training trials (folds by whole trial within the "
+             "dataset), scored on its test trials. Oracles, chosen on the trials they are scored on (ceilings, "
+             "not results): *TAGP in-sample* (one pair for the dataset), *group oracle* (one pair per group; "
+             "its *all* row takes each trial at the pair of its group in the finest partition listed below), "
+             "*trial oracle* (one pair per trial). *true labels*: the learned VQF's per-state settings driven by "
+             "the true motion state instead of a classifier (the study's `vqf_oracle`: its search from VQF's "
+             "defaults), learned on each fold's training trials and scored on its test trials; *true labels "
+             "from TAGP*: the same search started at the fold's TAGP with τ_acc and τ_mag per state on the "
+             "grid. *offline VQF*: the `vqf` package's non-causal estimate at its defaults. Pairs are chosen "
+             "on the total RMSE; heading and inclination are at the chosen pair.", ""]
+    for r in results:
+        groups = ["all"] + list(r["groups"])
+        grid = ", ".join(f"{k} {{{', '.join(f'{v:g}' for v in vals)}}} s" for k, vals in r["grid"].items())
+        chk = r["vqf_check"]
+        lines += [f"## {r['name']} ({len(r['trials'])} trials, {len(r['folds'])} folds)", "",
+                  f"Grid: {grid}. In-sample TAGP: {_pair(r['tagp_in_sample'])}. True motion labels on "
+                  f"{100.0 * r['label_coverage']:.1f} % of the samples (elsewhere the core's own settings). "
+                  f"The core at its defaults against the `vqf` package's online VQF: largest per-trial "
+                  f"difference {chk['total']:.2g}° total, {chk['heading']:.2g}° heading, "
+                  f"{chk['inclination']:.2g}° inclination.", ""]
+        for metric in METRICS:
+            lines += [f"**{metric.capitalize()} RMSE [°]**", "",
+                      "| group | trials | " + " | ".join(LABELS[row] for row in ROWS) + " |",
+                      "|---" * (len(ROWS) + 2) + "|"]
+            for g in groups:
+                n = len(r["trials"]) if g == "all" else len(r["groups"][g])
+                ref = group_mean(r, "defaults", g, metric)
+                lines.append(f"| {g} | {n} | " + " | ".join(_cell(group_mean(r, row, g, metric), ref, row)
+                                                          for row in ROWS) + " |")
+            lines.append("")
+        lines += ["Pairs (τ_acc, τ_mag) chosen on the total RMSE: "
+                  + "; ".join(f"fold {f['fold'] + 1} TAGP {_pair(f['tagp'])} (training mean "
+                              f"{f['train_mean_total']:.2f}°)" for f in r["folds"]) + ". Group oracle: "
+                  + "; ".join(f"{g} {_pair(p)}" for g, p in r["group_pairs"].items()) + ". Finest partition: "
+                  + (", ".join(r["partition"]) if r["partition"] else "none (the all row is the in-sample TAGP)")
+                  + ".", ""]
+    return "\n".join(lines)
+
+
+def headroom_json(results: list) -> dict:
+    """The table's source numbers: dataset -> its ``dataset_headroom`` result (rows per trial, folds,
+    chosen pairs, checks), with the group means per row and metric under ``means``."""
+    out = {}
+    for r in results:
+        means = {g: {row: {m: group_mean(r, row, g, m) for m in METRICS} for row in ROWS}
+                 for g in ["all"] + list(r["groups"])}
+        out[r["name"]] = {**r, "means": means}
+    return out
+
+
+def run_headroom(dirs, out_dir, settings: HeadroomSettings, command: str, trials=None, store=None) -> list:
+    """``dataset_headroom`` on each directory of ``dirs`` (``trials``: the same selection in each), then
+    ``out_dir/headroom.md`` (``headroom_table``, its first line naming ``command``) and ``headroom.json``,
+    written atomically. Returns the results."""
+    revision = source_revision()  # the code that runs (a commit made during a long run is not it)
+    results = [dataset_headroom(d, settings, trials, store) for d in dirs]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "headroom.md", headroom_table(results, command, revision))
+    atomic_write_json(out / "headroom.json", headroom_json(results))
+    log.info(f"headroom: {out / 'headroom.md'}")
+    return results

@@ -480,10 +480,12 @@ def initialize_from_sample(state, acc, mag, mag_ok):
 
 
 @njit(cache=True, inline="always")
-def load_quat(state):
-    return (state[0], state[1], state[2], state[3])
+def load_quat(v):
+    """The quaternion in ``v[0:4]`` (a filter's state, or a quaternion field of a state record) as a 4-tuple."""
+    return (v[0], v[1], v[2], v[3])
 
 
 @njit(cache=True, inline="always")
-def store_quat(state, q):
-    state[0], state[1], state[2], state[3] = q
+def store_quat(v, q):
+    """Write the 4-tuple ``q`` into ``v[0:4]``."""
+    v[0], v[1], v[2], v[3] = q

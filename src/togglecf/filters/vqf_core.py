@@ -96,10 +96,13 @@ from togglecf.filters.base import (
     OrientationFilter,
     dt_valid,
     gyro_valid,
+    load_quat,
     record_view,
     state_record,
+    store_quat,
     vector_ok,
 )
+from togglecf.filters.timeconst import gain_from_tau
 
 __all__ = [
     "CORE_STATE",
@@ -117,7 +120,6 @@ __all__ = [
     "VQFCoreFilter",
     "VQFCoreSettings",
     "butterworth_lp_coefficients",
-    "gain_from_tau",
     "lp_coefficients",
 ]
 
@@ -290,13 +292,6 @@ def lp_coefficients(tau: float, ts: float) -> LowPass:
 
 
 @njit(cache=True)
-def gain_from_tau(tau: float, ts: float) -> float:
-    """Per-sample gain of a first-order low-pass with time constant ``tau`` [s]: 1 − exp(−Ts/τ)
-    (1 for τ = 0)."""
-    return 1.0 if tau == 0.0 else 1.0 - math.exp(-ts / tau)
-
-
-@njit(cache=True)
 def bias_noise_w(sigma: float, v: float) -> float:
     """(B5): measurement noise W [(rad/s)²] whose steady-state posterior standard deviation is
     ``sigma`` [rad/s] with process noise ``v`` per sample: W = σ⁴/V + σ²."""
@@ -412,16 +407,6 @@ def _unit(q):
 
 
 @njit(cache=True, inline="always")
-def _get4(v):
-    return (v[0], v[1], v[2], v[3])
-
-
-@njit(cache=True, inline="always")
-def _set4(v, q):
-    v[0], v[1], v[2], v[3] = q
-
-
-@njit(cache=True, inline="always")
 def _matrix(q):
     """Row-major rotation matrix (9-tuple) of unit quaternion q (sensor -> earth)."""
     w, x, y, z = q
@@ -504,7 +489,7 @@ def update_gyr(st, p, mod, gyr, dt):
     # Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual Δt
     b = st.bias
     dq = from_rotvec_scalar((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
-    _set4(st.q_gyr, _unit(multiply_scalar(_get4(st.q_gyr), dq)))
+    store_quat(st.q_gyr, _unit(multiply_scalar(load_quat(st.q_gyr), dq)))
 
 
 @njit(cache=True, inline="always")
@@ -518,9 +503,9 @@ def update_acc(st, p, mod, acc):
         if d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_acc_sq:
             st.rest_t = 0.0
             st.rest_detected = 0.0
-    ai = rotate_scalar(_get4(st.q_gyr), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
+    ai = rotate_scalar(load_quat(st.q_gyr), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
     f = _lp_bank(st.acc_lp, ai, mod.acc_lp, p.tau_acc, p.ts)  # Alg. 1 l. 10
-    qa = _get4(st.q_acc)
+    qa = load_quat(st.q_acc)
     ae = rotate_scalar(qa, f)  # Alg. 1 l. 11
     na = math.sqrt(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2])
     if not (na > 0.0 and na < math.inf):
@@ -533,7 +518,7 @@ def update_acc(st, p, mod, acc):
         corr = (qw, ay * h, -ax * h, 0.0)
     else:  # a points down: the 180° correction about any horizontal axis
         corr = (0.0, 1.0, 0.0, 0.0)
-    _set4(st.q_acc, _unit(multiply_scalar(corr, qa)))
+    store_quat(st.q_acc, _unit(multiply_scalar(corr, qa)))
     st.initialized = 1.0
     return True, ax, ay
 
@@ -543,7 +528,7 @@ def update_bias(st, p, mod, ax, ay):
     """Gyro bias estimation (B1)-(B5) after an inclination correction with the normalised
     low-passed acceleration (a_x, a_y) in εᵢ. Returns q_6D (Alg. 1 l. 15)."""
     b0, b1, b2 = st.bias[0], st.bias[1], st.bias[2]
-    q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+    q6 = multiply_scalar(load_quat(st.q_acc), load_quat(st.q_gyr))  # Alg. 1 l. 15
     r = _matrix(q6)  # R(q_6D)
     rb = (r[0] * b0 + r[1] * b1 + r[2] * b2, r[3] * b0 + r[4] * b1 + r[5] * b2)
     rl = _lp_bank(st.bias_r_lp, r, mod.acc_lp, p.tau_acc, p.ts)  # R̄ = LP₂(R; τ_acc)
@@ -644,7 +629,7 @@ def update_output(st, p, q6, k, diag):
         q = (c * q6[0] - s * q6[3], c * q6[1] - s * q6[2], c * q6[2] + s * q6[1], c * q6[3] + s * q6[0])
     else:
         q = q6
-    _set4(st.quat, q)
+    store_quat(st.quat, q)
     diag[0] = st.rest_detected
     diag[1] = st.mag_dist_detected if p.use_mag > 0.5 else 0.0
     diag[2] = st.bias[0]
@@ -672,7 +657,7 @@ def core_update(st, p, mod, gyr, acc, mag, dt, diag):
             q6 = update_bias(st, p, mod, ax, ay)
             have_q6 = True
     if not have_q6:
-        q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+        q6 = multiply_scalar(load_quat(st.q_acc), load_quat(st.q_gyr))  # Alg. 1 l. 15
     k = 0.0
     if p.use_mag > 0.5 and vector_ok(mag):
         k = update_mag(st, p, mod, mag, q6)

@@ -52,6 +52,7 @@ from togglecf.filters.prediction import (
     predicted_disturbance,
     remove_noise,
 )
+from togglecf.filters.timeconst import gain_from_tau
 from togglecf.filters.toggling import PredictionDrivenFilter
 from togglecf.filters.vqf_core import (
     CORE_STATE_FIELDS,
@@ -61,7 +62,6 @@ from togglecf.filters.vqf_core import (
     VQFCoreSettings,
     bias_noise_w,
     core_update,
-    gain_from_tau,
     lp_coefficients,
 )
 

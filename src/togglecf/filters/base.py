@@ -346,8 +346,9 @@ class OrientationFilter:
     def last_diagnostics(self) -> dict:
         return dict(zip(self.diagnostic_names, self._diag.tolist()))
 
-    def _inputs(self, gyr, acc, mag, dt):
-        """Validated contiguous ``(N, 3)`` gyr, acc, mag (zeros in 6D) and ``(N,)`` dt."""
+    def batch_inputs(self, gyr, acc, mag, dt):
+        """The inputs of ``update_batch`` validated for this filter: contiguous float64 ``(N, 3)`` gyr,
+        acc, mag (zeros in 6D) and ``(N,)`` dt [s] (``Ts`` when ``dt`` is None)."""
         gyr = _series(gyr, "gyr")
         n = gyr.shape[0]
         acc = _series(acc, "acc", n)
@@ -369,7 +370,7 @@ class OrientationFilter:
     def update_batch(self, gyr, acc, mag=None, dt=None) -> FilterOutput:
         """Arrays ``(N, 3)`` (see ``update``); ``dt`` a scalar or ``(N,)`` per-sample steps [s]
         (``dt_from_timestamps`` makes them from timestamps). Continues from the current state."""
-        gyr, acc, mag, dt = self._inputs(gyr, acc, mag, dt)
+        gyr, acc, mag, dt = self.batch_inputs(gyr, acc, mag, dt)
         n = gyr.shape[0]
         quat_out = np.empty((n, 4))
         diag_out = np.zeros((n, len(self.diagnostic_names)))

@@ -81,7 +81,6 @@ from togglecf.filters.timeconst import gain
 __all__ = [
     "PredictionDrivenFilter",
     "params_by_value",
-    "prediction_step_of",
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
@@ -289,32 +288,12 @@ def params_by_value(params):
     return params._replace(**conv) if conv else params
 
 
-#: ``Coefficients`` record -> the step of the prediction-driven filters that use it (``prediction_step_of``)
-_STEPS: dict = {}
-
-
-def prediction_step_of(record: type):
-    """The step (numba dispatcher) of the prediction-driven filters whose ``Coefficients`` is
-    ``record``: what a compiled loop calls for a ``params`` of that type (``toggling.inloop``)."""
-    if record not in _STEPS:
-        raise TypeError(f"no prediction-driven filter has the coefficients {record.__qualname__}")
-    return _STEPS[record]
-
-
 class PredictionDrivenFilter(OrientationFilter):
     """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
     acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
     probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
     m/s² and µT; ``filters.prediction``). ``update``/``update_batch`` take the predictions beside
-    the IMU samples; with none given, ``_default_pred`` stands in ("no model"). Each subclass's
-    step is registered under its ``Coefficients`` (``prediction_step_of``)."""
-
-    def __init_subclass__(cls, **kwargs):
-        super().__init_subclass__(**kwargs)
-        if cls.step is not None:
-            known = _STEPS.setdefault(cls.Coefficients, cls.step)
-            if known is not cls.step:
-                raise TypeError(f"{cls.__name__}: its Coefficients {cls.Coefficients.__qualname__} belong to another step")
+    the IMU samples; with none given, ``_default_pred`` stands in ("no model")."""
 
     @classmethod
     def settings_for(cls, class_names, rest_state: str, **overrides):
@@ -350,13 +329,13 @@ class PredictionDrivenFilter(OrientationFilter):
         pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
         if pred.shape != (self.n_predictions,):
             raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
-        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+        g, a, m, dt_arr = self.batch_inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
                                        None if mag is None else np.reshape(mag, (1, 3)), dt)
         type(self).step(self.state, self.step_params(), g[0], a[0], m[0], dt_arr[0], pred, self._diag)
         return self.quat
 
     def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
-        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
+        g, a, m, dt_arr = self.batch_inputs(gyr, acc, mag, dt)
         n = g.shape[0]
         pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
         if pred.shape != (n, self.n_predictions):

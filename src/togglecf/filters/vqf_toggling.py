@@ -45,6 +45,7 @@ from numba import njit
 from togglecf.core.quaternion import rotate_scalar
 from togglecf.filters.base import record_fields, record_view, state_record
 from togglecf.filters.prediction import (
+    PredictionDrivenFilter,
     PredictionLayout,
     back_off,
     blend_trust,
@@ -53,7 +54,6 @@ from togglecf.filters.prediction import (
     remove_noise,
 )
 from togglecf.filters.timeconst import gain_from_tau
-from togglecf.filters.toggling import PredictionDrivenFilter
 from togglecf.filters.vqf_core import (
     CORE_STATE_FIELDS,
     CoreModulation,

@@ -66,6 +66,7 @@ __all__ = [
     "dt_from_timestamps",
     "make_coefficients",
     "record_fields",
+    "record_of",
     "record_view",
     "run_batch",
     "state_record",
@@ -194,6 +195,13 @@ def record_view(dtype: np.dtype):
             return builder.bitcast(data, context.get_value_type(record))
         return record(state), codegen
     return view
+
+
+def record_of(state: np.ndarray, dtype: np.dtype):
+    """In Python: the flat float64 ``state`` ``(n,)`` as one record of the structured ``dtype``
+    (``state_record``; fields by name, e.g. ``record_of(f.state, f.state_dtype).bias``): a view,
+    writes go to ``state``."""
+    return state.view(dtype).view(np.recarray)[0]
 
 
 def record_fields(record: type, prefix: str) -> list:

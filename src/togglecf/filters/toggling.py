@@ -12,7 +12,7 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
    the class probabilities; a hard toggle when the probabilities are one-hot); the
    magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
-   **Fallback** (issue 12): with no prediction (NaN probabilities: before the first full window,
+   **Fallback**: with no prediction (NaN probabilities: before the first full window,
    or a window outside the models' training range, ``learn.ranges``) or a prediction whose
    confidence c = max_s p_s / Σ_s p_s is below ``confidence_floor`` c₀, the models are not
    used: α_a, α_m are the *cautious* gains, per sensor the slowest of the per-state ones (trust

@@ -1,4 +1,4 @@
-"""The VQF core with learned, motion-dependent time constants (issue 13).
+"""The VQF core with learned, motion-dependent time constants.
 
 The VQF core (``filters.vqf_core``) runs unchanged; per sample, the predictions
 ``pred = [p_1..p_S, η̂_a (3), η̂_m (3)]`` (class probabilities of the motion state, predicted

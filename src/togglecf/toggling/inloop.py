@@ -10,7 +10,8 @@ A learned filter *holds* two parts: ``filter``, the prediction-driven filter (``
 (the loop, inlined) with that step.
 
 The kernels take named records (``NamedTuple``, compiled to structs): the IMU ``Samples``, the
-``FeatureWindow``, the ``ModelArrays`` (prediction layout, trees, training ranges), the
+``FeatureWindow``, the ``ModelArrays`` (prediction layout, the trees in both layouts and which one
+``walk_forest`` walks, training ranges), the
 ``HeldPrediction`` (the row held between hops and the hop's scratch) and the ``Outputs``. They take no
 function argument, so numba caches them on disk like the filters' own steps instead of compiling them
 again in every process (a function passed as an argument, or closed over, is not cached). As every
@@ -23,8 +24,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, types
-from numba.extending import overload
+from numba import njit
 
 from togglecf.features.streaming import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features
 from togglecf.features.windows import hop_length
@@ -65,9 +65,11 @@ class ModelArrays(NamedTuple):
     """The models as the loop uses them."""
 
     layout: PredictionLayout  # of the prediction row (filters.prediction)
-    # learn.trees' CompleteForestArrays (walked by predict_margin_row_complete) or FlatForestArrays (very deep
-    # trees: predict_margin_row): one output per row entry (class margins, η̂_a, η̂_m)
-    forest: tuple
+    # the trees, one output per row entry (class margins, η̂_a, η̂_m), in two layouts of learn.trees; walk_forest
+    # walks the complete one (predict_margin_row_complete, faster) unless the trees are too deep for it
+    complete: CompleteForestArrays  # no trees when walk_complete is False
+    flat: FlatForestArrays
+    walk_complete: bool
     low: np.ndarray  # (N_FEATURES,) training range of each feature (learn.ranges; NaN: unbounded)
     high: np.ndarray
     max_out_of_range: float  # the largest fraction of bounded features out of range that still predicts
@@ -91,20 +93,14 @@ class Outputs(NamedTuple):
     fallback: np.ndarray
 
 
-def walk_forest(forest, feat, margin):
-    """The trees' margins of the feature row ``feat`` into ``margin``: compiled code only, the walk
-    chosen by the type of ``forest`` (``learn.trees.CompleteForestArrays`` or ``FlatForestArrays``) at
-    compile time."""
-    raise TypeError("walk_forest runs in compiled code only")
-
-
-@overload(walk_forest, inline="always")
-def _walk_forest_typed(forest, feat, margin):
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is CompleteForestArrays:
-        return lambda forest, feat, margin: predict_margin_row_complete(feat, forest, margin)
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is FlatForestArrays:
-        return lambda forest, feat, margin: predict_margin_row(feat, forest, margin)
-    return None
+@njit(cache=True, inline="always")
+def walk_forest(models, feat, margin):
+    """The trees' margins of the feature row ``feat`` into ``margin``: the complete layout's walk when
+    ``models.walk_complete``, else the flat one (the same margins; ``ModelArrays``)."""
+    if models.walk_complete:
+        predict_margin_row_complete(feat, models.complete, margin)
+    else:
+        predict_margin_row(feat, models.flat, margin)
 
 
 @njit(cache=True)
@@ -120,7 +116,7 @@ def hop_predict(window, models, held):
         pred[:] = math.nan
         return
     held.fallback[0] = 0.0
-    walk_forest(models.forest, feat, margin)
+    walk_forest(models, feat, margin)
     mx = margin[0]
     for s in range(1, layout.n_states):
         mx = max(mx, margin[s])
@@ -190,6 +186,13 @@ def vqf_toggling_inloop_batch(state, params, samples, window, models, held, out)
     run_inloop(vqf_toggling_step, state, params, samples, window, models, held, out)
 
 
+#: ``ModelArrays.complete`` for trees walked flat: the complete layout of no trees (the dtypes of
+#: ``CompleteForest.arrays``)
+_NO_COMPLETE_TREES = CompleteForestArrays(np.zeros(2, np.float32), np.empty(0, np.int32), np.empty(0, np.float32),
+                                          np.empty(0, np.float32), np.empty(0, np.int32), np.empty(0, np.int32),
+                                          np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0))
+
+
 class InLoopPredictor:
     """The compiled models of a learned filter as its loop runs them: the streaming feature window
     (pushed every sample), the trees (walked at each window end, ``hop`` samples apart) and the
@@ -226,11 +229,12 @@ class InLoopPredictor:
     def forest(self, forest):
         self._forest = forest
         try:  # the same trees laid out to walk faster (identical margins); very deep trees keep the plain walk
-            walk = forest.complete().arrays()
+            complete, walk_complete = forest.complete().arrays(), True
         except ValueError:
-            walk = forest.arrays()
+            complete, walk_complete = _NO_COMPLETE_TREES, False
         m = self.models
-        self.arrays = ModelArrays(self.layout, walk, m.feature_low, m.feature_high, m.max_out_of_range)
+        self.arrays = ModelArrays(self.layout, complete, forest.arrays(), walk_complete, m.feature_low, m.feature_high,
+                                  m.max_out_of_range)
 
     def reset(self):
         """An empty feature window and no prediction held."""

@@ -12,10 +12,11 @@ A learned filter *holds* two parts: ``filter``, the prediction-driven filter (``
 The kernels take named records (``NamedTuple``, compiled to structs): the IMU ``Samples``, the
 ``FeatureWindow``, the ``ModelArrays`` (prediction layout, the trees in both layouts and which one
 ``walk_forest`` walks, training ranges), the ``HeldPrediction`` (the row held between hops and the
-hop's scratch) and the ``Outputs``. They take no function argument, so numba caches them on disk like the filters' own steps instead of compiling them
-again in every process (a function passed as an argument, or closed over, is not cached). As every
-numba cache, a kernel's is keyed on this file's source: after editing a filter's step in another
-file, clear the cache (``__pycache__``) or the old step may run on.
+hop's scratch) and the ``Outputs``. They take no function argument, so numba caches them on disk
+like the filters' own steps instead of compiling them again in every process (a function passed as
+an argument, or closed over, is not cached). As every numba cache, a kernel's is keyed on this file's
+source: after editing a filter's step in another file, clear the cache (``__pycache__``) or the old
+step may run on.
 """
 from __future__ import annotations
 
@@ -297,6 +298,10 @@ class InLoopFilter:
         self.filter = filt
         self.predictor = InLoopPredictor(filt.fs, models, layout, unused)
         self._diag = np.zeros(len(filt.diagnostic_names))  # the last sample's, for last_diagnostics
+
+    def __repr__(self):
+        classes = self.models.class_names
+        return f"{type(self).__name__}(filter={self.filter!r}, models: classes {classes}, hop {self.hop})"
 
     # -- the held filter, read through ---------------------------------------------------------
     name = property(lambda self: self.filter.name)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from togglecf.core import quaternion as quat
-from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings, butterworth_lp_coefficients, gain_from_tau
+from togglecf.filters.timeconst import gain_from_tau
+from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings, butterworth_lp_coefficients
 from togglecf.metrics.broad import trial_errors
 from togglecf.simulate import gimbal_trajectory, imu_from_orientation, random_smooth_trajectory, static_trajectory
 

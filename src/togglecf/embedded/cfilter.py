@@ -6,7 +6,7 @@
 every per-sample gain and the features' window and hop from it and the settings in seconds;
 ``tcf_filter_update_dt`` takes the per-sample Δt of the gyro integration:
 
-* ``tcf_filter.h`` / ``tcf_filter.c``: hand-written port of ``toggling.inloop.inloop_batch`` (one sample)
+* ``tcf_filter.h`` / ``tcf_filter.c``: hand-written port of ``toggling.inloop.toggling_inloop_batch`` (one sample)
   (streaming features, trees every hop, softmax, toggling step 1-7), float32, no heap, all
   state in one fixed-size ``tcf_filter_t`` (templates shipped in ``togglecf/embedded/``, with the
   shared ``tcf_features.{h,c}`` and ``tcf_prediction.h``);

@@ -5,7 +5,7 @@
 * ``tcf_vqf.h`` / ``tcf_vqf.c``: hand-written port of ``vqf_core_step`` (float32, no heap, no
   globals written, all state in one fixed-size ``tcf_vqf_t``; templates shipped in
   ``togglecf/embedded/``). The coefficients are derived *in C* by ``tcf_vqf_init`` from the
-  physical settings and Ts (the formulas of ``VQFCoreFilter._coefficients``), so firmware can
+  physical settings and Ts (the formulas of ``vqf_core.core_coefficients``), so firmware can
   pick rate and settings at run time and the generated header holds only settings; in float32
   this loses nothing because the second-order low-passes use a well-conditioned "delta" form
   (see ``tcf_vqf.h``) whose two coefficients are small numbers with full relative precision;

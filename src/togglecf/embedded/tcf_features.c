@@ -4,7 +4,7 @@
  * Line-by-line port of (togglecf/...):
  *   features/streaming.py  push_sample, window_features -> tcf_push_sample, tcf_window_features
  *   learn/ranges.py        window_out_of_range          -> tcf_out_of_range
- *   toggling/inloop.py     inloop_batch (the model part) -> tcf_features_push
+ *   toggling/inloop.py     run_inloop (the model part) -> tcf_features_push
  */
 #include <math.h>
 #include <stddef.h>
@@ -252,7 +252,7 @@ int tcf_features_init(tcf_features_t *f, float fs) {
   return TCF_OK;
 }
 
-/* inloop_batch, the model part of one sample: push the features; at a window end (every rate.hop samples once
+/* run_inloop, the model part of one sample: push the features; at a window end (every rate.hop samples once
    the window is full) check the range, evaluate the trees into f->pred (held until the next one). */
 int tcf_features_push(tcf_features_t *f, const float gyr[3], const float acc[3], const float mag[3]) {
   int renewed = 0;

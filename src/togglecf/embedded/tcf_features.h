@@ -2,7 +2,7 @@
  * tree ensemble, shared by the exported filters (tcf_filter.c: the toggling CF;
  * tcf_vqf_toggling.c: the VQF core with learned time constants).
  *
- * A port of the model part of togglecf.toggling.inloop.inloop_batch: per sample, the 12 feature
+ * A port of the model part of togglecf.toggling.inloop.run_inloop: per sample, the 12 feature
  * channels are pushed into a ring buffer of the last L samples
  * (togglecf.features.streaming); at every window end (once the window is full, then every
  * H samples) the TCF_N_FEATURES window features are checked against their training range

@@ -1,7 +1,7 @@
 /* tcf_filter.c: the toggling-gain CF of togglecf in C99, float32 (API in tcf_filter.h).
  *
  * Line-by-line port of (togglecf/...):
- *   toggling/inloop.py     inloop_batch (one sample)         -> tcf_filter_update_dt (the models:
+ *   toggling/inloop.py     toggling_inloop_batch (one sample) -> tcf_filter_update_dt (the models:
  *                                                               tcf_features_push, tcf_features.c)
  *   filters/toggling.py    _gains, toggle_step               -> tcf_gains, tcf_toggle_step
  *                          TogglingFilter._coefficients, reset -> tcf_coefficients, tcf_filter_init
@@ -257,7 +257,7 @@ int tcf_filter_init(tcf_filter_t *f, float fs) {
   return TCF_OK;
 }
 
-/* inloop_batch, one sample: push the features; at a window end (every hop samples once the window is
+/* toggling_inloop_batch, one sample: push the features; at a window end (every hop samples once the window is
    full) evaluate the trees into f->feat.pred (held until the next one; NaN when the window is
    out of the training range); then the toggling step. */
 void tcf_filter_update_dt(tcf_filter_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {

@@ -1,6 +1,6 @@
 /* tcf_filter.h: the toggling-gain complementary filter of togglecf in C99 (float32).
  *
- * A port of togglecf.toggling.inloop.inloop_batch (one sample) with the toggling step: the models in the
+ * A port of togglecf.toggling.inloop.toggling_inloop_batch (one sample) with the toggling step: the models in the
  * loop (tcf_features.{h,c}, shared with the learned VQF export: streaming features, the range
  * check of the out-of-range fallback, the generated tree ensemble tcf_forest.c every hop
  * samples, the prediction held until the next window end), then the toggling step (steps 1-7

@@ -2,7 +2,7 @@
  *
  * Line-by-line port of togglecf/filters/vqf_core.py (core_update and its parts update_gyr,
  * update_acc, update_bias, update_mag, update_output; _bias_update, ...,
- * VQFCoreFilter._coefficients and reset); the comments (R1)...(M5), (B1)...(B5) and
+ * core_coefficients and reset_core_state); the comments (R1)...(M5), (B1)...(B5) and
  * "Alg. 1 l. N" refer to that module's docstring. The second-order low-passes run in the same
  * "delta" form as the Python's _lp (lp_step below), in float32 instead of float64.
  */

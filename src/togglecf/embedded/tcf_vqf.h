@@ -10,7 +10,7 @@
  *
  * Memory: all state in one tcf_vqf_t (fixed size, no heap, no globals written; reentrant,
  * one tcf_vqf_t per sensor). The per-sample coefficients are derived from the settings and
- * Ts = 1/fs by tcf_vqf_init (float32, once; same formulas as VQFCoreFilter._coefficients)
+ * Ts = 1/fs by tcf_vqf_init (float32, once; same formulas as vqf_core.core_coefficients)
  * and kept inside tcf_vqf_t, so rate and settings can be chosen at run time.
  * sizeof(tcf_vqf_t) = TCF_VQF_STATE_BYTES = 532 bytes. The object code of tcf_vqf.c (+
  * tcf_vqf_standalone.c) on a Cortex-M4F (hard float), rv32imc (soft float) and the host, and the

@@ -1,6 +1,7 @@
 /* tcf_vqf_toggling.c: the VQF core with learned time constants in C99, float32 (API in
  * tcf_vqf_toggling.h). Port of (togglecf/...):
- *   toggling/inloop.py         inloop_batch, one sample (models: tcf_features_push) -> tcf_vqft_update_dt
+ *   toggling/inloop.py         vqf_toggling_inloop_batch, one sample -> tcf_vqft_update_dt
+ *                              (models: tcf_features_push)
  *   filters/vqf_toggling.py    vqf_toggling_step, modulate, reset     -> tcf_vqft_step, tcf_vqft_modulate,
  *                                                                       tcf_vqft_init
  *   filters/prediction.py      blend_trust (the learned VQF's own fallback rule) -> tcf_vqft_blend_trust;

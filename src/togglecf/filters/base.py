@@ -66,6 +66,7 @@ __all__ = [
     "dt_from_timestamps",
     "make_coefficients",
     "record_fields",
+    "record_of",
     "record_view",
     "run_batch",
     "state_record",
@@ -194,6 +195,13 @@ def record_view(dtype: np.dtype):
             return builder.bitcast(data, context.get_value_type(record))
         return record(state), codegen
     return view
+
+
+def record_of(state: np.ndarray, dtype: np.dtype):
+    """In Python: the flat float64 ``state`` ``(n,)`` as one record of the structured ``dtype``
+    (``state_record``; fields by name, e.g. ``record_of(f.state, f.state_dtype).bias``): a view,
+    writes go to ``state``."""
+    return state.view(dtype).view(np.recarray)[0]
 
 
 def record_fields(record: type, prefix: str) -> list:
@@ -346,8 +354,9 @@ class OrientationFilter:
     def last_diagnostics(self) -> dict:
         return dict(zip(self.diagnostic_names, self._diag.tolist()))
 
-    def _inputs(self, gyr, acc, mag, dt):
-        """Validated contiguous ``(N, 3)`` gyr, acc, mag (zeros in 6D) and ``(N,)`` dt."""
+    def batch_inputs(self, gyr, acc, mag, dt):
+        """The inputs of ``update_batch`` validated for this filter: contiguous float64 ``(N, 3)`` gyr,
+        acc, mag (zeros in 6D) and ``(N,)`` dt [s] (``Ts`` when ``dt`` is None)."""
         gyr = _series(gyr, "gyr")
         n = gyr.shape[0]
         acc = _series(acc, "acc", n)
@@ -369,7 +378,7 @@ class OrientationFilter:
     def update_batch(self, gyr, acc, mag=None, dt=None) -> FilterOutput:
         """Arrays ``(N, 3)`` (see ``update``); ``dt`` a scalar or ``(N,)`` per-sample steps [s]
         (``dt_from_timestamps`` makes them from timestamps). Continues from the current state."""
-        gyr, acc, mag, dt = self._inputs(gyr, acc, mag, dt)
+        gyr, acc, mag, dt = self.batch_inputs(gyr, acc, mag, dt)
         n = gyr.shape[0]
         quat_out = np.empty((n, 4))
         diag_out = np.zeros((n, len(self.diagnostic_names)))
@@ -480,10 +489,12 @@ def initialize_from_sample(state, acc, mag, mag_ok):
 
 
 @njit(cache=True, inline="always")
-def load_quat(state):
-    return (state[0], state[1], state[2], state[3])
+def load_quat(v):
+    """The quaternion in ``v[0:4]`` (a filter's state, or a quaternion field of a state record) as a 4-tuple."""
+    return (v[0], v[1], v[2], v[3])
 
 
 @njit(cache=True, inline="always")
-def store_quat(state, q):
-    state[0], state[1], state[2], state[3] = q
+def store_quat(v, q):
+    """Write the 4-tuple ``q`` into ``v[0:4]``."""
+    v[0], v[1], v[2], v[3] = q

@@ -1,7 +1,10 @@
 """One prediction row and what the two learned filters take from it (``filters.toggling``, the
 toggling CF, and ``filters.vqf_toggling``, the learned VQF): the row's layout, the confidence in
 its class probabilities, the fallback, the noise removal and the magnetic back-off. Each filter
-keeps only its own core (gains or time constants) and calls these.
+keeps only its own core (gains or time constants) and calls these. And their common base,
+``PredictionDrivenFilter``: a filter whose step takes one such row per sample beside the IMU sample
+(``update``/``update_batch`` with given predictions, ``run_batch_predicted``; the models in the loop:
+``toggling.inloop``).
 
 Row (``PredictionLayout``): ``[p_1..p_S, η̂_a (3), η̂_m (3)]``: the class probabilities of the S
 motion states (any non-negative weights; they need not sum to 1), then the predicted acc noise
@@ -38,28 +41,34 @@ motion states (any non-negative weights; they need not sum to 1), then the predi
 4. back-off     a heading/magnetometer gain k becomes k / (1 + e), e = |η̂_m|² / σ_m²
                 (``predicted_disturbance``, ``back_off``; σ_m [µT] > 0)
 
-All kernels here are numba functions that take the ``PredictionLayout`` (a ``NamedTuple`` of ints, a
-field of the filters' coefficients) and the row ``(S + 6,)``.
+The kernels of steps 1-4 are numba functions that take the ``PredictionLayout`` (a ``NamedTuple`` of
+ints, a field of the filters' coefficients) and the row ``(S + 6,)``.
 """
 from __future__ import annotations
 
 import math
 from typing import NamedTuple
 
+import numpy as np
 from numba import njit
+
+from togglecf.filters.base import FilterOutput, OrientationFilter
 
 __all__ = [
     "LEARNED",
     "LOW_CONFIDENCE",
     "NO_PREDICTION",
     "N_PRED_NOISE",
+    "PredictionDrivenFilter",
     "PredictionLayout",
     "back_off",
     "blend_trust",
     "class_evidence",
     "noise_finite",
+    "params_by_value",
     "predicted_disturbance",
     "remove_noise",
+    "run_batch_predicted",
     "switch_status",
 ]
 
@@ -187,3 +196,88 @@ def predicted_disturbance(layout, row, sigma):
 def back_off(gain, e):
     """Step 4: a magnetometer gain lowered by the disturbance e ≥ 0: k / (1 + e)."""
     return gain / (1.0 + e)
+
+
+# ------------------------------------------------------------------------------------------
+# The filters driven by one prediction row per sample
+# ------------------------------------------------------------------------------------------
+
+@njit(cache=False)
+def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, diag_out):
+    """``run_batch`` with one prediction row per sample."""
+    for i in range(gyr.shape[0]):
+        step(state, params, gyr[i], acc[i], mag[i], dt[i], pred[i], diag_out[i])
+        quat_out[i, 0] = state[0]
+        quat_out[i, 1] = state[1]
+        quat_out[i, 2] = state[2]
+        quat_out[i, 3] = state[3]
+
+
+def params_by_value(params):
+    """``params`` (a coefficients record) with its non-empty 1-D float64 arrays as tuples of the same
+    values (``PredictionDrivenFilter.step_params``; the steps only index these fields)."""
+    conv = {k: tuple(float(x) for x in v) for k, v in params._asdict().items()
+            if isinstance(v, np.ndarray) and v.ndim == 1 and v.size and v.dtype == np.float64}
+    return params._replace(**conv) if conv else params
+
+
+class PredictionDrivenFilter(OrientationFilter):
+    """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
+    acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
+    probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
+    m/s² and µT; ``filters.prediction``). ``update``/``update_batch`` take the predictions beside
+    the IMU samples; with none given, ``_default_pred`` stands in ("no model")."""
+
+    #: the ``params`` whose by-value copy ``step_params`` holds (None: none made yet)
+    _step_params_of = None
+
+    @classmethod
+    def settings_for(cls, class_names, rest_state: str, **overrides):
+        """Settings for a model whose classes are ``class_names`` (its rest class ``rest_state``), as
+        ``states``, built in one go so that per-state defaults match their number; ``overrides``
+        replace fields (``states`` too)."""
+        return cls.Settings(**{"states": tuple(class_names), **overrides})
+
+    def step_params(self):
+        """``self.params`` as the step gets it: its non-empty 1-D float arrays as tuples of the same
+        values (``params_by_value``), rebuilt when ``self.params`` is replaced. Why: numba
+        reference-counts every array of a record at each call of the step, while a tuple of floats is
+        passed as plain values; and every loop that runs the step (``update_batch``, the in-loop
+        models' ``toggling.inloop``) passes the same types, so it is compiled once."""
+        if self._step_params_of is not self.params:
+            self._step_params_of, self._step_params_value = self.params, params_by_value(self.params)
+        return self._step_params_value
+
+    @property
+    def layout(self) -> PredictionLayout:
+        """The layout of this filter's prediction rows (``filters.prediction``)."""
+        return PredictionLayout.of(len(self.settings.states))
+
+    @property
+    def n_predictions(self) -> int:
+        return self.layout.size
+
+    def _default_pred(self, n):
+        raise NotImplementedError
+
+    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
+        pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
+        if pred.shape != (self.n_predictions,):
+            raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
+        g, a, m, dt_arr = self.batch_inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
+                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
+        type(self).step(self.state, self.step_params(), g[0], a[0], m[0], dt_arr[0], pred, self._diag)
+        return self.quat
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
+        g, a, m, dt_arr = self.batch_inputs(gyr, acc, mag, dt)
+        n = g.shape[0]
+        pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
+        if pred.shape != (n, self.n_predictions):
+            raise ValueError(f"predictions: expected shape ({n}, {self.n_predictions}), got {pred.shape}")
+        quat_out = np.empty((n, 4))
+        diag_out = np.zeros((n, len(self.diagnostic_names)))
+        run_batch_predicted(type(self).step, self.state, self.step_params(), g, a, m, dt_arr, pred, quat_out, diag_out)
+        if n:
+            self._diag[:] = diag_out[-1]
+        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})

@@ -5,7 +5,7 @@ low-passes) is a time constant τ [s] in the settings, the same at any sampling 
 converts it once, from its *nominal* sampling time ``Ts = 1/fs``, into the per-sample gain its
 kernel uses (its ``Coefficients``):
 
-    k = 1 − exp(−Ts/τ)          (``vqf_core.gain_from_tau``, VQF's convention)
+    k = 1 − exp(−Ts/τ)          (``gain_from_tau``, VQF's convention)
 
 τ = 0 gives k = 1 (the measurement replaces the estimate every sample); τ < 0 gives k = 0 (the
 update is off; VQF's convention too). Like VQF, the coefficients use the nominal ``Ts``, not each
@@ -20,12 +20,19 @@ from __future__ import annotations
 
 import math
 
-from togglecf.filters.vqf_core import gain_from_tau
+from numba import njit
 
-__all__ = ["BROAD_FS", "gain", "tau_from_gain"]
+__all__ = ["BROAD_FS", "gain", "gain_from_tau", "tau_from_gain"]
 
 #: Hz, the rate of BROAD's IMU, at which the former per-sample gains were tuned
 BROAD_FS = 285.714
+
+
+@njit(cache=True)
+def gain_from_tau(tau: float, ts: float) -> float:
+    """Per-sample gain of a first-order low-pass with time constant ``tau`` [s] at sampling time
+    ``ts`` [s]: 1 − exp(−ts/τ) (1 for τ = 0). Compiled: the learned VQF's kernel calls it per sample."""
+    return 1.0 if tau == 0.0 else 1.0 - math.exp(-ts / tau)
 
 
 def gain(tau: float, ts: float) -> float:

@@ -12,7 +12,7 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
    the class probabilities; a hard toggle when the probabilities are one-hot); the
    magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
-   **Fallback** (issue 12): with no prediction (NaN probabilities: before the first full window,
+   **Fallback**: with no prediction (NaN probabilities: before the first full window,
    or a window outside the models' training range, ``learn.ranges``) or a prediction whose
    confidence c = max_s p_s / Σ_s p_s is below ``confidence_floor`` c₀, the models are not
    used: α_a, α_m are the *cautious* gains, per sensor the slowest of the per-state ones (trust
@@ -56,9 +56,7 @@ from numba import njit
 
 from togglecf.core.quaternion import multiply_scalar, normalize_scalar, rotate_inverse_scalar
 from togglecf.filters.base import (
-    FilterOutput,
     FilterSettings,
-    OrientationFilter,
     acc_mag_quaternion,
     gyro_increment,
     gyro_valid,
@@ -69,6 +67,7 @@ from togglecf.filters.base import (
 from togglecf.filters.prediction import (
     LEARNED,
     LOW_CONFIDENCE,
+    PredictionDrivenFilter,
     PredictionLayout,
     back_off,
     class_evidence,
@@ -79,13 +78,9 @@ from togglecf.filters.prediction import (
 from togglecf.filters.timeconst import gain
 
 __all__ = [
-    "PredictionDrivenFilter",
-    "params_by_value",
-    "prediction_step_of",
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
-    "run_batch_predicted",
     "toggle_step",
 ]
 
@@ -268,105 +263,6 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     state[8], state[9], state[10] = a_pred
     state[11], state[12], state[13] = m_pred
     diag[3] = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
-
-
-@njit(cache=False)
-def run_batch_predicted(step, state, params, gyr, acc, mag, dt, pred, quat_out, diag_out):
-    """``run_batch`` with one prediction row per sample."""
-    for i in range(gyr.shape[0]):
-        step(state, params, gyr[i], acc[i], mag[i], dt[i], pred[i], diag_out[i])
-        quat_out[i, 0] = state[0]
-        quat_out[i, 1] = state[1]
-        quat_out[i, 2] = state[2]
-        quat_out[i, 3] = state[3]
-
-
-def params_by_value(params):
-    """``params`` (a coefficients record) with its non-empty 1-D float64 arrays as tuples of the same
-    values (``PredictionDrivenFilter.step_params``; the steps only index these fields)."""
-    conv = {k: tuple(float(x) for x in v) for k, v in params._asdict().items()
-            if isinstance(v, np.ndarray) and v.ndim == 1 and v.size and v.dtype == np.float64}
-    return params._replace(**conv) if conv else params
-
-
-#: ``Coefficients`` record -> the step of the prediction-driven filters that use it (``prediction_step_of``)
-_STEPS: dict = {}
-
-
-def prediction_step_of(record: type):
-    """The step (numba dispatcher) of the prediction-driven filters whose ``Coefficients`` is
-    ``record``: what a compiled loop calls for a ``params`` of that type (``toggling.inloop``)."""
-    if record not in _STEPS:
-        raise TypeError(f"no prediction-driven filter has the coefficients {record.__qualname__}")
-    return _STEPS[record]
-
-
-class PredictionDrivenFilter(OrientationFilter):
-    """A filter whose step also takes one prediction row per sample: ``step(state, params, gyr,
-    acc, mag, dt, pred, diag)`` with ``pred`` = ``[p_1..p_S, η̂_a (3), η̂_m (3)]`` (class
-    probabilities of ``settings.states``, then the predicted acc/mag noise in the sensor frame,
-    m/s² and µT; ``filters.prediction``). ``update``/``update_batch`` take the predictions beside
-    the IMU samples; with none given, ``_default_pred`` stands in ("no model"). Each subclass's
-    step is registered under its ``Coefficients`` (``prediction_step_of``)."""
-
-    def __init_subclass__(cls, **kwargs):
-        super().__init_subclass__(**kwargs)
-        if cls.step is not None:
-            known = _STEPS.setdefault(cls.Coefficients, cls.step)
-            if known is not cls.step:
-                raise TypeError(f"{cls.__name__}: its Coefficients {cls.Coefficients.__qualname__} belong to another step")
-
-    @classmethod
-    def settings_for(cls, class_names, rest_state: str, **overrides):
-        """Settings for a model whose classes are ``class_names`` (its rest class ``rest_state``), as
-        ``states``, built in one go so that per-state defaults match their number; ``overrides``
-        replace fields (``states`` too)."""
-        return cls.Settings(**{"states": tuple(class_names), **overrides})
-
-    def step_params(self):
-        """``self.params`` as the step gets it: its non-empty 1-D float arrays as tuples of the same
-        values (``params_by_value``), rebuilt when ``self.params`` is replaced. numba reference-counts
-        every array of a record at each call of the step (measured 0.08 µs per sample for the five
-        arrays of ``VQFTogglingCoefficients``, a quarter of the VQF core), while a tuple of floats is
-        passed as plain values; and every loop that runs the step (``update_batch``, the in-loop
-        models' ``toggling.inloop``) passes the same types, so it is compiled once."""
-        if getattr(self, "_step_params_of", None) is not self.params:
-            self._step_params_of, self._step_params_value = self.params, params_by_value(self.params)
-        return self._step_params_value
-
-    @property
-    def layout(self) -> PredictionLayout:
-        """The layout of this filter's prediction rows (``filters.prediction``)."""
-        return PredictionLayout.of(len(self.settings.states))
-
-    @property
-    def n_predictions(self) -> int:
-        return self.layout.size
-
-    def _default_pred(self, n):
-        raise NotImplementedError
-
-    def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
-        pred = self._default_pred(1)[0] if prediction is None else np.asarray(prediction, np.float64)
-        if pred.shape != (self.n_predictions,):
-            raise ValueError(f"prediction: expected shape ({self.n_predictions},), got {pred.shape}")
-        g, a, m, dt_arr = self._inputs(np.reshape(gyr, (1, 3)), np.reshape(acc, (1, 3)),
-                                       None if mag is None else np.reshape(mag, (1, 3)), dt)
-        type(self).step(self.state, self.step_params(), g[0], a[0], m[0], dt_arr[0], pred, self._diag)
-        return self.quat
-
-    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
-        g, a, m, dt_arr = self._inputs(gyr, acc, mag, dt)
-        n = g.shape[0]
-        pred = self._default_pred(n) if predictions is None else np.ascontiguousarray(predictions, np.float64)
-        if pred.shape != (n, self.n_predictions):
-            raise ValueError(f"predictions: expected shape ({n}, {self.n_predictions}), got {pred.shape}")
-        quat_out = np.empty((n, 4))
-        diag_out = np.zeros((n, len(self.diagnostic_names)))
-        run_batch_predicted(type(self).step, self.state, self.step_params(), g, a, m, dt_arr, pred, quat_out, diag_out)
-        if n:
-            self._diag[:] = diag_out[-1]
-        return FilterOutput(quat_out, {k: diag_out[:, i] for i, k in enumerate(self.diagnostic_names)})
 
 
 class TogglingFilter(PredictionDrivenFilter):

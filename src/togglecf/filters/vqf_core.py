@@ -96,10 +96,14 @@ from togglecf.filters.base import (
     OrientationFilter,
     dt_valid,
     gyro_valid,
+    load_quat,
+    record_of,
     record_view,
     state_record,
+    store_quat,
     vector_ok,
 )
+from togglecf.filters.timeconst import gain_from_tau
 
 __all__ = [
     "CORE_STATE",
@@ -113,11 +117,13 @@ __all__ = [
     "update_gyr",
     "update_mag",
     "update_output",
+    "align_q_acc",
     "bias_noise_w",
+    "core_coefficients",
+    "reset_core_state",
     "VQFCoreFilter",
     "VQFCoreSettings",
     "butterworth_lp_coefficients",
-    "gain_from_tau",
     "lp_coefficients",
 ]
 
@@ -290,13 +296,6 @@ def lp_coefficients(tau: float, ts: float) -> LowPass:
 
 
 @njit(cache=True)
-def gain_from_tau(tau: float, ts: float) -> float:
-    """Per-sample gain of a first-order low-pass with time constant ``tau`` [s]: 1 − exp(−Ts/τ)
-    (1 for τ = 0)."""
-    return 1.0 if tau == 0.0 else 1.0 - math.exp(-ts / tau)
-
-
-@njit(cache=True)
 def bias_noise_w(sigma: float, v: float) -> float:
     """(B5): measurement noise W [(rad/s)²] whose steady-state posterior standard deviation is
     ``sigma`` [rad/s] with process noise ``v`` per sample: W = σ⁴/V + σ²."""
@@ -412,16 +411,6 @@ def _unit(q):
 
 
 @njit(cache=True, inline="always")
-def _get4(v):
-    return (v[0], v[1], v[2], v[3])
-
-
-@njit(cache=True, inline="always")
-def _set4(v, q):
-    v[0], v[1], v[2], v[3] = q
-
-
-@njit(cache=True, inline="always")
 def _matrix(q):
     """Row-major rotation matrix (9-tuple) of unit quaternion q (sensor -> earth)."""
     w, x, y, z = q
@@ -504,7 +493,7 @@ def update_gyr(st, p, mod, gyr, dt):
     # Alg. 1 l. 8: strapdown integration of the bias-corrected rate over the actual Δt
     b = st.bias
     dq = from_rotvec_scalar((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
-    _set4(st.q_gyr, _unit(multiply_scalar(_get4(st.q_gyr), dq)))
+    store_quat(st.q_gyr, _unit(multiply_scalar(load_quat(st.q_gyr), dq)))
 
 
 @njit(cache=True, inline="always")
@@ -518,9 +507,9 @@ def update_acc(st, p, mod, acc):
         if d0 * d0 + d1 * d1 + d2 * d2 >= mod.rest_th_acc_sq:
             st.rest_t = 0.0
             st.rest_detected = 0.0
-    ai = rotate_scalar(_get4(st.q_gyr), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
+    ai = rotate_scalar(load_quat(st.q_gyr), (acc[0], acc[1], acc[2]))  # Alg. 1 l. 9
     f = _lp_bank(st.acc_lp, ai, mod.acc_lp, p.tau_acc, p.ts)  # Alg. 1 l. 10
-    qa = _get4(st.q_acc)
+    qa = load_quat(st.q_acc)
     ae = rotate_scalar(qa, f)  # Alg. 1 l. 11
     na = math.sqrt(ae[0] * ae[0] + ae[1] * ae[1] + ae[2] * ae[2])
     if not (na > 0.0 and na < math.inf):
@@ -533,7 +522,7 @@ def update_acc(st, p, mod, acc):
         corr = (qw, ay * h, -ax * h, 0.0)
     else:  # a points down: the 180° correction about any horizontal axis
         corr = (0.0, 1.0, 0.0, 0.0)
-    _set4(st.q_acc, _unit(multiply_scalar(corr, qa)))
+    store_quat(st.q_acc, _unit(multiply_scalar(corr, qa)))
     st.initialized = 1.0
     return True, ax, ay
 
@@ -543,7 +532,7 @@ def update_bias(st, p, mod, ax, ay):
     """Gyro bias estimation (B1)-(B5) after an inclination correction with the normalised
     low-passed acceleration (a_x, a_y) in εᵢ. Returns q_6D (Alg. 1 l. 15)."""
     b0, b1, b2 = st.bias[0], st.bias[1], st.bias[2]
-    q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+    q6 = multiply_scalar(load_quat(st.q_acc), load_quat(st.q_gyr))  # Alg. 1 l. 15
     r = _matrix(q6)  # R(q_6D)
     rb = (r[0] * b0 + r[1] * b1 + r[2] * b2, r[3] * b0 + r[4] * b1 + r[5] * b2)
     rl = _lp_bank(st.bias_r_lp, r, mod.acc_lp, p.tau_acc, p.ts)  # R̄ = LP₂(R; τ_acc)
@@ -644,7 +633,7 @@ def update_output(st, p, q6, k, diag):
         q = (c * q6[0] - s * q6[3], c * q6[1] - s * q6[2], c * q6[2] + s * q6[1], c * q6[3] + s * q6[0])
     else:
         q = q6
-    _set4(st.quat, q)
+    store_quat(st.quat, q)
     diag[0] = st.rest_detected
     diag[1] = st.mag_dist_detected if p.use_mag > 0.5 else 0.0
     diag[2] = st.bias[0]
@@ -672,7 +661,7 @@ def core_update(st, p, mod, gyr, acc, mag, dt, diag):
             q6 = update_bias(st, p, mod, ax, ay)
             have_q6 = True
     if not have_q6:
-        q6 = multiply_scalar(_get4(st.q_acc), _get4(st.q_gyr))  # Alg. 1 l. 15
+        q6 = multiply_scalar(load_quat(st.q_acc), load_quat(st.q_gyr))  # Alg. 1 l. 15
     k = 0.0
     if p.use_mag > 0.5 and vector_ok(mag):
         k = update_mag(st, p, mod, mag, q6)
@@ -684,6 +673,61 @@ def vqf_core_step(state, params, gyr, acc, mag, dt, diag):
     """One sample of the VQF core (module docstring) on the flat ``state`` (read as the record
     ``CORE_STATE``). diag: see ``VQFCoreFilter.diagnostic_names``."""
     core_update(_core_state(state), params, params.modulation, gyr, acc, mag, dt, diag)
+
+
+def core_coefficients(s: VQFCoreSettings, ts: float) -> dict:
+    """The core's ``VQFCoreCoefficients`` fields (all but ``use_mag``, ``max_dt``) by name, from the
+    settings ``s`` (VQF's units) and the sampling time ``ts`` [s]; rates in rad/s."""
+    # (B5): variances in (rad/s)²
+    p_motion = (s.bias_sigma_motion * _DEG) ** 2
+    p_rest = (s.bias_sigma_rest * _DEG) ** 2
+    v = (_BIAS_DRIFT_DEG_S * _DEG) ** 2 * ts / s.bias_forgetting_time
+    w_motion = p_motion * p_motion / v + p_motion
+    modulation = CoreModulation(
+        acc_lp=lp_coefficients(s.tau_acc, ts), k_mag=gain_from_tau(s.tau_mag, ts), bias_w_motion=w_motion,
+        bias_w_vertical=w_motion / max(s.bias_vertical_forgetting_factor, 1e-10),
+        rest_th_gyr_sq=(s.rest_th_gyr * _DEG) ** 2, rest_th_acc_sq=s.rest_th_acc ** 2)
+    return {
+        "ts": ts, "inv_ts": 1.0 / ts, "tau_acc": s.tau_acc, "modulation": modulation, "tau_mag": s.tau_mag,
+        "motion_bias": float(s.motion_bias_est_enabled), "rest_bias": float(s.rest_bias_est_enabled),
+        "mag_rejection": float(s.mag_dist_rejection_enabled),
+        "bias_p0": (s.bias_sigma_init * _DEG) ** 2, "bias_v": v,
+        "bias_w_rest": p_rest * p_rest / v + p_rest, "bias_clip": s.bias_clip * _DEG,
+        "rest_tau": s.rest_filter_tau, "rest_lp": lp_coefficients(s.rest_filter_tau, ts),
+        "rest_min_t": s.rest_min_t, "mag_cur_tau": s.mag_current_tau,
+        "mag_lp": lp_coefficients(s.mag_current_tau, ts) if s.mag_current_tau > 0 else LowPass(4.0, 0.0),
+        "k_mag_ref": gain_from_tau(s.mag_ref_tau, ts), "mag_norm_th": s.mag_norm_th,
+        "mag_dip_th": s.mag_dip_th * _DEG, "mag_new_time": s.mag_new_time, "mag_new_first_time": s.mag_new_first_time,
+        "mag_new_min_gyr_sq": (s.mag_new_min_gyr * _DEG) ** 2, "mag_min_undisturbed_t": s.mag_min_undisturbed_time,
+        "mag_max_rejection_t": s.mag_max_rejection_time, "mag_rejection_factor": s.mag_rejection_factor,
+    }
+
+
+def reset_core_state(st, params):
+    """The core's initial state in the record ``st`` (all zeros before; ``CORE_STATE``, or a record
+    that starts with its fields) for the coefficients ``params``: identity q_gyr, q_acc; δ = 0; b̂ = 0
+    with P = P₀ I; magnetic field taken as disturbed with no reference yet; every low-pass back in its
+    averaging phase."""
+    st.q_gyr[0] = 1.0
+    st.q_acc[0] = 1.0
+    p0 = params.bias_p0
+    st.bias_p[0] = st.bias_p[4] = st.bias_p[8] = p0
+    st.mag_dist_detected = 1.0
+    st.mag_reject_t = params.mag_max_rejection_t
+    st.mag_cand_norm = -1.0
+    st.k_mag_init = 1.0
+
+
+def align_q_acc(st, use_mag: bool):
+    """After the output orientation ``st.quat`` was set: q_acc such that q = [cos δ/2, 0, 0, sin δ/2]
+    ⊗ q_acc ⊗ q_gyr (in 6D, δ not applied); the almost-inertial frame, the low-passes, δ and the bias
+    are kept."""
+    qo = st.quat.copy()
+    h = 0.5 * st.delta if use_mag else 0.0
+    qz_inv = np.array([math.cos(h), 0.0, 0.0, -math.sin(h)])
+    qg_conj = st.q_gyr * np.array([1.0, -1.0, -1.0, -1.0])
+    qa = _qmul(_qmul(qz_inv, qo), qg_conj)
+    st.q_acc[:] = qa / np.linalg.norm(qa)
 
 
 class VQFCoreFilter(OrientationFilter):
@@ -706,62 +750,23 @@ class VQFCoreFilter(OrientationFilter):
     step = vqf_core_step
 
     def _coefficients(self) -> dict:
-        s, ts = self.settings, self.Ts
-        # (B5): variances in (rad/s)²
-        p_motion = (s.bias_sigma_motion * _DEG) ** 2
-        p_rest = (s.bias_sigma_rest * _DEG) ** 2
-        v = (_BIAS_DRIFT_DEG_S * _DEG) ** 2 * ts / s.bias_forgetting_time
-        w_motion = p_motion * p_motion / v + p_motion
-        modulation = CoreModulation(
-            acc_lp=lp_coefficients(s.tau_acc, ts), k_mag=gain_from_tau(s.tau_mag, ts), bias_w_motion=w_motion,
-            bias_w_vertical=w_motion / max(s.bias_vertical_forgetting_factor, 1e-10),
-            rest_th_gyr_sq=(s.rest_th_gyr * _DEG) ** 2, rest_th_acc_sq=s.rest_th_acc ** 2)
-        return {
-            "ts": ts, "inv_ts": 1.0 / ts, "tau_acc": s.tau_acc, "modulation": modulation, "tau_mag": s.tau_mag,
-            "motion_bias": float(s.motion_bias_est_enabled), "rest_bias": float(s.rest_bias_est_enabled),
-            "mag_rejection": float(s.mag_dist_rejection_enabled),
-            "bias_p0": (s.bias_sigma_init * _DEG) ** 2, "bias_v": v,
-            "bias_w_rest": p_rest * p_rest / v + p_rest, "bias_clip": s.bias_clip * _DEG,
-            "rest_tau": s.rest_filter_tau, "rest_lp": lp_coefficients(s.rest_filter_tau, ts),
-            "rest_min_t": s.rest_min_t, "mag_cur_tau": s.mag_current_tau,
-            "mag_lp": lp_coefficients(s.mag_current_tau, ts) if s.mag_current_tau > 0 else LowPass(4.0, 0.0),
-            "k_mag_ref": gain_from_tau(s.mag_ref_tau, ts), "mag_norm_th": s.mag_norm_th,
-            "mag_dip_th": s.mag_dip_th * _DEG, "mag_new_time": s.mag_new_time, "mag_new_first_time": s.mag_new_first_time,
-            "mag_new_min_gyr_sq": (s.mag_new_min_gyr * _DEG) ** 2, "mag_min_undisturbed_t": s.mag_min_undisturbed_time,
-            "mag_max_rejection_t": s.mag_max_rejection_time, "mag_rejection_factor": s.mag_rejection_factor,
-        }
+        return core_coefficients(self.settings, self.Ts)
 
     @property
     def record(self):
-        """The state as a named record (``CORE_STATE``, or the subclass's): a view, writes go to ``state``."""
-        return self.state.view(self.state_dtype).view(np.recarray)[0]
+        """The state as a named record (``CORE_STATE``): a view, writes go to ``state``."""
+        return record_of(self.state, self.state_dtype)
 
     def reset(self):
-        """Initial state: identity q_gyr, q_acc; δ = 0; b̂ = 0 with P = P₀ I; magnetic field
-        taken as disturbed with no reference yet; every low-pass back in its averaging phase."""
+        """Initial state (``reset_core_state``)."""
         super().reset()
-        st = self.record
-        st.q_gyr[0] = 1.0
-        st.q_acc[0] = 1.0
-        p0 = self.params.bias_p0
-        st.bias_p[0] = st.bias_p[4] = st.bias_p[8] = p0
-        st.mag_dist_detected = 1.0
-        st.mag_reject_t = self.params.mag_max_rejection_t
-        st.mag_cand_norm = -1.0
-        st.k_mag_init = 1.0
+        reset_core_state(self.record, self.params)
 
     def set_quat(self, q):
-        """Set the output orientation (sensor -> ENU) and mark the filter initialised. The
-        almost-inertial frame, the low-passes, δ and the bias are kept; q_acc absorbs the change
-        (q = [cos δ/2, 0, 0, sin δ/2] ⊗ q_acc ⊗ q_gyr; in 6D δ is not applied)."""
+        """Set the output orientation (sensor -> ENU) and mark the filter initialised; q_acc absorbs
+        the change (``align_q_acc``)."""
         super().set_quat(q)
-        st = self.record
-        qo = st.quat.copy()
-        h = 0.5 * st.delta if self.use_mag else 0.0
-        qz_inv = np.array([math.cos(h), 0.0, 0.0, -math.sin(h)])
-        qg_conj = st.q_gyr * np.array([1.0, -1.0, -1.0, -1.0])
-        qa = _qmul(_qmul(qz_inv, qo), qg_conj)
-        st.q_acc[:] = qa / np.linalg.norm(qa)
+        align_q_acc(self.record, self.use_mag)
 
 
 def _qmul(p, q):

@@ -1,4 +1,4 @@
-"""The VQF core with learned, motion-dependent time constants (issue 13).
+"""The VQF core with learned, motion-dependent time constants.
 
 The VQF core (``filters.vqf_core``) runs unchanged; per sample, the predictions
 ``pred = [p_1..p_S, η̂_a (3), η̂_m (3)]`` (class probabilities of the motion state, predicted
@@ -43,8 +43,9 @@ import numpy as np
 from numba import njit
 
 from togglecf.core.quaternion import rotate_scalar
-from togglecf.filters.base import record_fields, record_view, state_record
+from togglecf.filters.base import record_fields, record_of, record_view, state_record
 from togglecf.filters.prediction import (
+    PredictionDrivenFilter,
     PredictionLayout,
     back_off,
     blend_trust,
@@ -52,17 +53,19 @@ from togglecf.filters.prediction import (
     predicted_disturbance,
     remove_noise,
 )
-from togglecf.filters.toggling import PredictionDrivenFilter
+from togglecf.filters.timeconst import gain_from_tau
 from togglecf.filters.vqf_core import (
     CORE_STATE_FIELDS,
     CoreModulation,
     VQFCoreCoefficients,
     VQFCoreFilter,
     VQFCoreSettings,
+    align_q_acc,
     bias_noise_w,
+    core_coefficients,
     core_update,
-    gain_from_tau,
     lp_coefficients,
+    reset_core_state,
 )
 
 __all__ = ["VQFTogglingFilter", "VQFTogglingSettings", "VQFTogglingCoefficients", "vqf_toggling_step",
@@ -323,11 +326,12 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
     diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = st.tau_acc_now, st.tau_mag_now, st.trust_now
 
 
-class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
+class VQFTogglingFilter(PredictionDrivenFilter):
     """The VQF core with learned time constants, driven by per-sample predictions:
     ``VQFTogglingFilter(fs, settings).update_batch(gyr, acc, mag, predictions=P)`` with
     ``P (N, S + 6)``. ``predictions=None`` means "no model": NaN rows, i.e. the core itself.
-    Diagnostics: the core's, plus ``tau_acc``, ``tau_mag`` [s] and ``trust`` (λ of step 1).
+    Diagnostics: the core's, plus ``tau_acc``, ``tau_mag`` [s] and ``trust`` (λ of step 1). The core's
+    parts (coefficients, initial state, ``set_quat``) are the core's own functions (``filters.vqf_core``).
     """
 
     name = "vqf_toggling"
@@ -340,7 +344,7 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
 
     def _coefficients(self) -> dict:
         s = self.settings
-        core = super()._coefficients()
+        core = core_coefficients(s, self.Ts)
         return {**core, "layout": PredictionLayout.of(len(s.states)), "ln_tau_acc": np.log(np.array(s.tau_acc_states)),
                 "ln_tau_mag": np.log(np.array(s.tau_mag_states)),
                 "ln_sigma_motion": np.log(np.array(s.bias_sigma_motion_states) * _DEG),
@@ -355,17 +359,29 @@ class VQFTogglingFilter(PredictionDrivenFilter, VQFCoreFilter):
                 "modulation_gain": gain_from_tau(s.modulation_tau, self.Ts),
                 "mag_backoff_measured": float(s.mag_backoff_measured)}
 
+    @property
+    def record(self):
+        """The state as a named record (``VQFT_STATE``): a view, writes go to ``state``."""
+        return record_of(self.state, self.state_dtype)
+
     def reset(self):
-        """The core's initial state; the modulation starts at the core's own coefficients (no
-        prediction seen yet: NaN probabilities)."""
+        """The core's initial state (``reset_core_state``); the modulation starts at the core's own
+        coefficients (no prediction seen yet: NaN probabilities)."""
         super().reset()
         st = self.record
+        reset_core_state(st, self.params)
         _store_record(st.mod, self.params.modulation)
         st.tau_acc_now, st.tau_mag_now, st.trust_now = self.settings.tau_acc, self.settings.tau_mag, 0.0
         st.last_p[:] = np.nan
         st.ln_tau_acc_target = st.ln_tau_acc_now = math.log(self.settings.tau_acc)
         st.ln_tau_mag_target = st.ln_tau_mag_now = math.log(self.settings.tau_mag)
         st.mag_disturbance_predicted, st.mag_backoff = 0.0, 1.0
+
+    def set_quat(self, q):
+        """Set the output orientation (sensor -> ENU) and mark the filter initialised; the core's
+        q_acc absorbs the change (``filters.vqf_core.align_q_acc``)."""
+        super().set_quat(q)
+        align_q_acc(self.record, self.use_mag)
 
     def _default_pred(self, n):
         return np.full((n, self.n_predictions), np.nan)

@@ -2,14 +2,21 @@
 evaluated every hop, the filter's prediction-driven step (``filters.toggling``, ``filters.vqf_toggling``)
 after each sample.
 
-The kernel ``inloop_batch(state, params, samples, window, models, held, out)`` takes named records
-(``NamedTuple``, compiled to structs): the IMU ``Samples``, the ``FeatureWindow``, the ``ModelArrays``
-(prediction layout, trees, training ranges), the ``HeldPrediction`` (the row held between hops and the
-hop's scratch) and the ``Outputs``. It takes no function: which filter step and which tree walk run is
-decided by the types of ``params`` and of the forest record when numba compiles it (``filter_step``,
-``walk_forest``), so the kernel is cached on disk like the filters' own steps instead of being compiled
-again in every process. As every numba cache, it is keyed on this file's source: after editing a
-filter's step in another file, clear the cache (``__pycache__``) or the old step may run on.
+A learned filter *holds* two parts: ``filter``, the prediction-driven filter (``TogglingFilter`` or
+``VQFTogglingFilter``: settings, coefficients, state, step), and ``predictor``, an ``InLoopPredictor``
+(the compiled models, the streaming feature window and the prediction held between hops). Its
+``update_batch`` calls the batch kernel of its filter by name: ``toggling_inloop_batch`` runs
+``toggle_step``, ``vqf_toggling_inloop_batch`` runs ``vqf_toggling_step``; both are ``run_inloop``
+(the loop, inlined) with that step.
+
+The kernels take named records (``NamedTuple``, compiled to structs): the IMU ``Samples``, the
+``FeatureWindow``, the ``ModelArrays`` (prediction layout, the trees in both layouts and which one
+``walk_forest`` walks, training ranges), the ``HeldPrediction`` (the row held between hops and the
+hop's scratch) and the ``Outputs``. They take no function argument, so numba caches them on disk
+like the filters' own steps instead of compiling them again in every process (a function passed as
+an argument, or closed over, is not cached). As every numba cache, a kernel's is keyed on this file's
+source: after editing a filter's step in another file, clear the cache (``__pycache__``) or the old
+step may run on.
 """
 from __future__ import annotations
 
@@ -17,23 +24,22 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, types
-from numba.extending import overload
+from numba import njit
 
 from togglecf.features.streaming import N_AUX, N_FEATURES, StreamingFeatures, push_sample, window_features
 from togglecf.features.windows import hop_length
 from togglecf.filters.base import FilterOutput
 from togglecf.filters.prediction import PredictionLayout
-from togglecf.filters.toggling import TogglingFilter, prediction_step_of
-from togglecf.filters.vqf_toggling import VQFTogglingFilter
+from togglecf.filters.toggling import TogglingFilter, toggle_step
+from togglecf.filters.vqf_toggling import VQFTogglingFilter, vqf_toggling_step
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.ranges import window_out_of_range
 from togglecf.learn.trees import (CompleteForestArrays, FlatForestArrays, predict_margin_row,
                                   predict_margin_row_complete)
 
-__all__ = ["FeatureWindow", "HeldPrediction", "InLoopModels", "ModelArrays",
-           "ModelTogglingFilter", "ModelVQFTogglingFilter", "Outputs", "Samples", "filter_step", "hop_predict",
-           "inloop_batch", "walk_forest"]
+__all__ = ["FeatureWindow", "HeldPrediction", "InLoopFilter", "InLoopPredictor", "ModelArrays",
+           "ModelTogglingFilter", "ModelVQFTogglingFilter", "Outputs", "Samples", "hop_predict", "prediction_filter",
+           "run_inloop", "toggling_inloop_batch", "vqf_toggling_inloop_batch", "walk_forest"]
 
 
 class Samples(NamedTuple):
@@ -59,9 +65,11 @@ class ModelArrays(NamedTuple):
     """The models as the loop uses them."""
 
     layout: PredictionLayout  # of the prediction row (filters.prediction)
-    # learn.trees' CompleteForestArrays (walked by predict_margin_row_complete) or FlatForestArrays (very deep
-    # trees: predict_margin_row): one output per row entry (class margins, η̂_a, η̂_m)
-    forest: tuple
+    # the trees, one output per row entry (class margins, η̂_a, η̂_m), in two layouts of learn.trees; walk_forest
+    # walks the complete one (predict_margin_row_complete, faster) unless the trees are too deep for it
+    complete: CompleteForestArrays  # no trees when walk_complete is False
+    flat: FlatForestArrays
+    walk_complete: bool
     low: np.ndarray  # (N_FEATURES,) training range of each feature (learn.ranges; NaN: unbounded)
     high: np.ndarray
     max_out_of_range: float  # the largest fraction of bounded features out of range that still predicts
@@ -85,37 +93,14 @@ class Outputs(NamedTuple):
     fallback: np.ndarray
 
 
-def walk_forest(forest, feat, margin):
-    """The trees' margins of the feature row ``feat`` into ``margin``: compiled code only, the walk
-    chosen by the type of ``forest`` (``learn.trees.CompleteForestArrays`` or ``FlatForestArrays``) at
-    compile time."""
-    raise TypeError("walk_forest runs in compiled code only")
-
-
-@overload(walk_forest, inline="always")
-def _walk_forest_typed(forest, feat, margin):
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is CompleteForestArrays:
-        return lambda forest, feat, margin: predict_margin_row_complete(feat, forest, margin)
-    if isinstance(forest, types.BaseNamedTuple) and forest.instance_class is FlatForestArrays:
-        return lambda forest, feat, margin: predict_margin_row(feat, forest, margin)
-    return None
-
-
-def filter_step(state, params, gyr, acc, mag, dt, pred, diag):
-    """The prediction-driven step of the filter whose coefficients ``params`` are: compiled code
-    only, the step chosen by the type of ``params`` at compile time (``filters.toggling.prediction_step_of``)."""
-    raise TypeError("filter_step runs in compiled code only")
-
-
-@overload(filter_step, inline="always")
-def _filter_step_typed(state, params, gyr, acc, mag, dt, pred, diag):
-    if not isinstance(params, types.BaseNamedTuple):
-        return None
-    step = prediction_step_of(params.instance_class)
-
-    def impl(state, params, gyr, acc, mag, dt, pred, diag):
-        step(state, params, gyr, acc, mag, dt, pred, diag)
-    return impl
+@njit(cache=True, inline="always")
+def walk_forest(models, feat, margin):
+    """The trees' margins of the feature row ``feat`` into ``margin``: the complete layout's walk when
+    ``models.walk_complete``, else the flat one (the same margins; ``ModelArrays``)."""
+    if models.walk_complete:
+        predict_margin_row_complete(feat, models.complete, margin)
+    else:
+        predict_margin_row(feat, models.flat, margin)
 
 
 @njit(cache=True)
@@ -131,7 +116,7 @@ def hop_predict(window, models, held):
         pred[:] = math.nan
         return
     held.fallback[0] = 0.0
-    walk_forest(models.forest, feat, margin)
+    walk_forest(models, feat, margin)
     mx = margin[0]
     for s in range(1, layout.n_states):
         mx = max(mx, margin[s])
@@ -145,16 +130,16 @@ def hop_predict(window, models, held):
         pred[j] = margin[j]
 
 
-@njit(cache=True)
-def inloop_batch(state, params, samples, window, models, held, out):
+@njit(cache=True, inline="always")
+def run_inloop(step, state, params, samples, window, models, held, out):
     """The models in the loop, per sample: push the features (``push_sample``); at a window end (every
     ``window.hop`` samples once the window is full) ``hop_predict`` updates ``held`` (the prediction is
-    held until the next hop); then the filter's step (``filter_step``) with that prediction. The one
-    kernel for ``update`` (one row) and ``update_batch``. Written for speed: a call per sample with
-    many arguments, the arrays among them reference-counted, cost as much as the whole VQF core; the
-    samples go to ``push_sample`` and the step as tuples and the step writes a scratch ``diag`` (row
-    views of the input arrays, each reference-counted, cost 0.1 µs per sample); ``params`` as from
-    ``PredictionDrivenFilter.step_params``."""
+    held until the next hop); then ``step`` (a filter's prediction-driven step) with that prediction.
+    Inlined into each filter's batch kernel (``toggling_inloop_batch``, ``vqf_toggling_inloop_batch``),
+    which names its step. Written for speed: a call per sample with many arguments, the arrays among
+    them reference-counted, costs as much as the whole VQF core; the samples go to ``push_sample`` and
+    the step as tuples and the step writes a scratch ``diag`` (not row views of the input arrays, each
+    reference-counted); ``params`` as from ``PredictionDrivenFilter.step_params``."""
     L = window.ring.shape[0]
     hop = window.hop
     pred = held.pred
@@ -175,7 +160,7 @@ def inloop_batch(state, params, samples, window, models, held, out):
             hop_predict(window, models, held)
         for j in range(diag.shape[0]):
             diag[j] = 0.0  # as a fresh row of diag_out: a step need not write every entry
-        filter_step(state, params, g, a, m, dt[i], pred, diag)
+        step(state, params, g, a, m, dt[i], pred, diag)
         for j in range(diag.shape[0]):
             diag_out[i, j] = diag[j]
         out.quat[i, 0] = state[0]
@@ -187,84 +172,196 @@ def inloop_batch(state, params, samples, window, models, held, out):
         out.fallback[i] = held.fallback[0]
 
 
-class InLoopModels:
-    """Mixin: a ``PredictionDrivenFilter`` with its models in the compiled loop, e.g.
-    ``ModelTogglingFilter(fs, settings, models=CompiledModels.from_bundle(load_bundle(dir)))``.
+@njit(cache=True)
+def toggling_inloop_batch(state, params, samples, window, models, held, out):
+    """``run_inloop`` with the toggling CF's step, ``filters.toggling.toggle_step``: ``state`` the
+    ``TogglingFilter``'s ``(5 + 9,)``, ``params`` its ``step_params()``."""
+    run_inloop(toggle_step, state, params, samples, window, models, held, out)
 
-    ``update``/``update_batch`` take only IMU samples; the diagnostics add the predictions
-    (``p_<state>``, ``eta_acc_x`` ...) and ``fallback`` (1 while the held window was out of the
-    training range, ``learn.ranges``). The full state (filter + feature window + held
-    prediction + fallback flag) is saved and restored by ``get_state``/``set_state``.
+
+@njit(cache=True)
+def vqf_toggling_inloop_batch(state, params, samples, window, models, held, out):
+    """``run_inloop`` with the learned VQF's step, ``filters.vqf_toggling.vqf_toggling_step``: ``state``
+    the ``VQFTogglingFilter``'s, ``params`` its ``step_params()``."""
+    run_inloop(vqf_toggling_step, state, params, samples, window, models, held, out)
+
+
+#: ``ModelArrays.complete`` for trees walked flat: the complete layout of no trees (the dtypes of
+#: ``CompleteForest.arrays``)
+_NO_COMPLETE_TREES = CompleteForestArrays(np.zeros(2, np.float32), np.empty(0, np.int32), np.empty(0, np.float32),
+                                          np.empty(0, np.float32), np.empty(0, np.int32), np.empty(0, np.int32),
+                                          np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0))
+
+
+class InLoopPredictor:
+    """The compiled models of a learned filter as its loop runs them: the streaming feature window
+    (pushed every sample), the trees (walked at each window end, ``hop`` samples apart) and the
+    prediction row held between window ends.
+
+    Attributes:
+        models: the ``CompiledModels``.
+        streaming_features: the feature window (``StreamingFeatures``: its settings, window length
+            ``L`` and per-sample constants ``params``, e.g. for the C export).
+        hop: samples from one window end to the next.
+        window, held: the ``FeatureWindow`` and ``HeldPrediction`` records the kernel updates in place.
+        pred: the held row ``(S + 6,)`` (NaN before the first full window); fallback: ``(1,)``, 1.0
+            while the held window was out of the training range (``learn.ranges``).
     """
 
-    def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
-        if settings is None:  # the model's classes (the filter's settings_for)
-            settings, overrides = self.settings_for(models.class_names, models.static_state, **overrides), {}
-        super().__init__(fs, settings, use_mag=use_mag, **overrides)
-        if tuple(self.settings.states) != models.class_names:
-            raise ValueError(f"filter states {self.settings.states} differ from the model's classes {models.class_names}")
+    def __init__(self, fs: float, models: CompiledModels, layout: PredictionLayout, unused_outputs=()):
+        """``layout``: the filter's prediction row; ``unused_outputs``: row indices the filter never
+        uses, whose trees are not walked (the same result in less time)."""
         self.models = models
-        s, layout = self.settings, self.layout
-        # η̂_m enters the noise removal (weight w_m) and the disturbance back-off (σ_m > 0), in 9D only
-        mag_needed = self.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
-        unused = ((layout.outputs(layout.eta_acc) if s.noise_weight_acc == 0.0 else [])
-                  + (layout.outputs(layout.eta_mag) if not mag_needed else []))
-        # the trees this filter walks: those of outputs it never uses are dropped (same result, less time)
-        self.forest = models.forest.without_outputs(unused) if unused else models.forest
-        self._features = StreamingFeatures(self.fs, models.feature_settings)
-        self.hop = hop_length(self.fs, models.feature_settings.hop_s)
-        f = self._features
-        self._window = FeatureWindow(f.ring, f.aux, f.params, f.last_src, self.hop)
-        self._reset_model_state()
-
-    @property
-    def streaming_features(self) -> StreamingFeatures:
-        """The feature window pushed every sample (its settings, window length ``L`` and
-        per-sample constants ``params``, e.g. for the C export)."""
-        return self._features
+        self.layout = layout
+        self.forest = models.forest.without_outputs(unused_outputs) if unused_outputs else models.forest
+        self.streaming_features = StreamingFeatures(fs, models.feature_settings)
+        self.hop = hop_length(fs, models.feature_settings.hop_s)
+        f = self.streaming_features
+        self.window = FeatureWindow(f.ring, f.aux, f.params, f.last_src, self.hop)
+        self.reset()
 
     @property
     def forest(self):
-        """The ``FlatForest`` this filter walks (set: also lays it out for the loop)."""
+        """The ``FlatForest`` walked (set: also lays it out for the loop, ``arrays``)."""
         return self._forest
 
     @forest.setter
     def forest(self, forest):
         self._forest = forest
         try:  # the same trees laid out to walk faster (identical margins); very deep trees keep the plain walk
-            walk = forest.complete().arrays()
+            complete, walk_complete = forest.complete().arrays(), True
         except ValueError:
-            walk = forest.arrays()
+            complete, walk_complete = _NO_COMPLETE_TREES, False
         m = self.models
-        self._model_arrays = ModelArrays(self.layout, walk, m.feature_low, m.feature_high, m.max_out_of_range)
-
-    def _reset_model_state(self):
-        self._features.ring[:] = 0.0
-        self._features.aux[:] = 0.0
-        self.pred = np.full(self.n_predictions, np.nan)  # no prediction before the first full window
-        self.fallback = np.zeros(1)  # 1 while the held window is out of the training range
-        self._held = HeldPrediction(self.pred, self.fallback, np.empty(N_FEATURES), np.empty(self.n_predictions))
+        self.arrays = ModelArrays(self.layout, complete, forest.arrays(), walk_complete, m.feature_low, m.feature_high,
+                                  m.max_out_of_range)
 
     def reset(self):
-        super().reset()
-        if hasattr(self, "models"):
-            self._reset_model_state()
+        """An empty feature window and no prediction held."""
+        self.streaming_features.ring[:] = 0.0
+        self.streaming_features.aux[:] = 0.0
+        self.pred = np.full(self.layout.size, np.nan)  # no prediction before the first full window
+        self.fallback = np.zeros(1)
+        self.held = HeldPrediction(self.pred, self.fallback, np.empty(N_FEATURES), np.empty(self.layout.size))
 
     def get_state(self) -> np.ndarray:
-        return np.concatenate([self.state, self._features.aux, self._features.ring.ravel(), self.pred, self.fallback])
+        """The window's running sums ``(N_AUX,)``, its samples (ring, flattened), the held row and
+        the fallback flag, concatenated."""
+        f = self.streaming_features
+        return np.concatenate([f.aux, f.ring.ravel(), self.pred, self.fallback])
+
+    def set_state(self, state):
+        """Restore what ``get_state`` returned (shape checked by the caller)."""
+        f = self.streaming_features
+        a, b, c = np.cumsum([N_AUX, f.ring.size, self.pred.size])
+        f.aux[:] = state[:a]
+        f.ring[:] = state[a:b].reshape(f.ring.shape)
+        self.pred[:] = state[b:c]
+        self.fallback[:] = state[c:]
+
+    @property
+    def state_size(self) -> int:
+        return N_AUX + self.streaming_features.ring.size + self.pred.size + 1
+
+
+def prediction_filter(filter_cls, fs: float, settings, models: CompiledModels, use_mag: bool, overrides: dict):
+    """``filter_cls(fs, settings, use_mag=use_mag, **overrides)`` for ``models``: with no ``settings``,
+    those of ``filter_cls.settings_for`` the model's classes (``overrides`` included). Refuses settings
+    whose states are not the model's classes."""
+    if settings is None:
+        settings, overrides = filter_cls.settings_for(models.class_names, models.static_state, **overrides), {}
+    filt = filter_cls(fs, settings, use_mag=use_mag, **overrides)
+    if tuple(filt.settings.states) != models.class_names:
+        raise ValueError(f"filter states {filt.settings.states} differ from the model's classes {models.class_names}")
+    return filt
+
+
+class InLoopFilter:
+    """A prediction-driven filter (``filter``: ``TogglingFilter`` or ``VQFTogglingFilter``) and the
+    models that predict for it (``predictor``: an ``InLoopPredictor``), run sample by sample in one
+    compiled loop. A subclass's ``update_batch`` names the loop of its filter's step.
+
+    ``update``/``update_batch`` take only IMU samples; the diagnostics are the filter's, plus the
+    predictions (``p_<state>``, ``eta_acc_x`` ...) and ``fallback`` (1 while the held window was out
+    of the training range, ``learn.ranges``). ``get_state``/``set_state`` save and restore the full
+    state: the filter's ``(n,)``, then the predictor's (feature window, held prediction, fallback flag).
+    The filter's settings, coefficients and state are read through (``settings``, ``params``,
+    ``state``, ``quat`` ...).
+    """
+
+    def __init__(self, filt, models: CompiledModels):
+        s, layout = filt.settings, filt.layout
+        # η̂_m enters the noise removal (weight w_m) and the disturbance back-off (σ_m > 0), in 9D only
+        mag_needed = filt.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
+        unused = ((layout.outputs(layout.eta_acc) if s.noise_weight_acc == 0.0 else [])
+                  + (layout.outputs(layout.eta_mag) if not mag_needed else []))
+        self.filter = filt
+        self.predictor = InLoopPredictor(filt.fs, models, layout, unused)
+        self._diag = np.zeros(len(filt.diagnostic_names))  # the last sample's, for last_diagnostics
+
+    def __repr__(self):
+        classes = self.models.class_names
+        return f"{type(self).__name__}(filter={self.filter!r}, models: classes {classes}, hop {self.hop})"
+
+    # -- the held filter, read through ---------------------------------------------------------
+    name = property(lambda self: self.filter.name)
+    fs = property(lambda self: self.filter.fs)
+    Ts = property(lambda self: self.filter.Ts)
+    use_mag = property(lambda self: self.filter.use_mag)
+    settings = property(lambda self: self.filter.settings)
+    params = property(lambda self: self.filter.params)
+    state = property(lambda self: self.filter.state)
+    state_names = property(lambda self: self.filter.state_names)
+    diagnostic_names = property(lambda self: self.filter.diagnostic_names)
+    layout = property(lambda self: self.filter.layout)
+    n_predictions = property(lambda self: self.filter.n_predictions)
+    quat = property(lambda self: self.filter.quat)
+
+    def state_dict(self) -> dict:
+        """The filter's state by name (``OrientationFilter.state_dict``)."""
+        return self.filter.state_dict()
+
+    def set_quat(self, q):
+        """Set the filter's orientation (``OrientationFilter.set_quat``)."""
+        self.filter.set_quat(q)
+
+    @property
+    def last_diagnostics(self) -> dict:
+        return dict(zip(self.diagnostic_names, self._diag.tolist()))
+
+    # -- the held predictor, read through ------------------------------------------------------
+    models = property(lambda self: self.predictor.models)
+    streaming_features = property(lambda self: self.predictor.streaming_features)
+    hop = property(lambda self: self.predictor.hop)
+
+    @property
+    def forest(self):
+        """The ``FlatForest`` the predictor walks (``InLoopPredictor.forest``; settable)."""
+        return self.predictor.forest
+
+    @forest.setter
+    def forest(self, forest):
+        self.predictor.forest = forest
+
+    # -- state -----------------------------------------------------------------------------------
+    def reset(self):
+        """Forget everything: the filter's state, the feature window and the held prediction."""
+        self.filter.reset()
+        self.predictor.reset()
+
+    def get_state(self) -> np.ndarray:
+        return np.concatenate([self.filter.state, self.predictor.get_state()])
 
     def set_state(self, state):
         state = np.asarray(state, np.float64)
-        sizes = [self.state.size, N_AUX, self._features.ring.size, self.pred.size, 1]
-        if state.shape != (sum(sizes),):
-            raise ValueError(f"{type(self).__name__}: state must have shape ({sum(sizes)},), got {state.shape}")
-        a, b, c, d = np.cumsum(sizes)[:4]
-        self.state[:] = state[:a]
-        self._features.aux[:] = state[a:b]
-        self._features.ring[:] = state[b:c].reshape(self._features.ring.shape)
-        self.pred[:] = state[c:d]
-        self.fallback[:] = state[d:]
+        n = self.filter.state.size
+        if state.shape != (n + self.predictor.state_size,):
+            raise ValueError(f"{type(self).__name__}: state must have shape ({n + self.predictor.state_size},), "
+                             f"got {state.shape}")
+        self.filter.state[:] = state[:n]
+        self.predictor.set_state(state[n:])
 
+    # -- running ---------------------------------------------------------------------------------
     def update(self, gyr, acc, mag=None, dt=None, prediction=None) -> np.ndarray:
         """One sample (``OrientationFilter.update``): ``update_batch`` of one row, the same kernel."""
         if prediction is not None:
@@ -273,15 +370,19 @@ class InLoopModels:
                           None if mag is None else np.reshape(mag, (1, 3)), None if dt is None else float(dt))
         return self.quat
 
-    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None):
+    def batch_records(self, gyr, acc, mag, dt, predictions) -> tuple[Samples, Outputs]:
+        """The kernel's ``Samples`` (validated by the filter, ``OrientationFilter.batch_inputs``) and
+        fresh ``Outputs`` for them."""
         if predictions is not None:
             raise ValueError(f"{type(self).__name__} predicts itself; pass predictions to the filter without models")
-        samples = Samples(*self._inputs(gyr, acc, mag, dt))
-        n = samples.gyr.shape[0]
-        out = Outputs(np.empty((n, 4)), np.zeros((n, len(self.diagnostic_names))), np.empty((n, self.n_predictions)),
-                      np.empty(n))
-        inloop_batch(self.state, self.step_params(), samples, self._window, self._model_arrays, self._held, out)
-        if n:
+        samples = Samples(*self.filter.batch_inputs(gyr, acc, mag, dt))
+        n, n_pred = samples.gyr.shape[0], self.predictor.layout.size
+        return samples, Outputs(np.empty((n, 4)), np.zeros((n, len(self.diagnostic_names))), np.empty((n, n_pred)),
+                                np.empty(n))
+
+    def batch_output(self, out: Outputs) -> FilterOutput:
+        """The ``FilterOutput`` of a batch the kernel wrote into ``out``."""
+        if out.quat.shape[0]:
             self._diag[:] = out.diag[-1]
         diags = {k: out.diag[:, i] for i, k in enumerate(self.diagnostic_names)}
         diags.update({k: out.pred[:, i] for i, k in enumerate(self.layout.names(self.models.class_names))})
@@ -289,9 +390,31 @@ class InLoopModels:
         return FilterOutput(out.quat, diags)
 
 
-class ModelTogglingFilter(InLoopModels, TogglingFilter):
-    """The toggling CF (``filters.toggling``) with its models in the compiled loop."""
+class ModelTogglingFilter(InLoopFilter):
+    """The toggling CF (``filters.toggling``) with its models in the compiled loop, e.g.
+    ``ModelTogglingFilter(fs, settings, models=CompiledModels.from_bundle(load_bundle(dir)))``; with no
+    ``settings``, ``TogglingFilter.settings_for`` the model's classes (``overrides`` replace fields)."""
+
+    def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
+        super().__init__(prediction_filter(TogglingFilter, fs, settings, models, use_mag, overrides), models)
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None) -> FilterOutput:
+        samples, out = self.batch_records(gyr, acc, mag, dt, predictions)
+        p = self.predictor
+        toggling_inloop_batch(self.filter.state, self.filter.step_params(), samples, p.window, p.arrays, p.held, out)
+        return self.batch_output(out)
 
 
-class ModelVQFTogglingFilter(InLoopModels, VQFTogglingFilter):
-    """The VQF core with learned time constants (``filters.vqf_toggling``) with its models in the loop."""
+class ModelVQFTogglingFilter(InLoopFilter):
+    """The VQF core with learned time constants (``filters.vqf_toggling``) with its models in the
+    compiled loop; with no ``settings``, ``VQFTogglingFilter.settings_for`` the model's classes."""
+
+    def __init__(self, fs: float, settings=None, *, models: CompiledModels, use_mag: bool = True, **overrides):
+        super().__init__(prediction_filter(VQFTogglingFilter, fs, settings, models, use_mag, overrides), models)
+
+    def update_batch(self, gyr, acc, mag=None, dt=None, predictions=None) -> FilterOutput:
+        samples, out = self.batch_records(gyr, acc, mag, dt, predictions)
+        p = self.predictor
+        vqf_toggling_inloop_batch(self.filter.state, self.filter.step_params(), samples, p.window, p.arrays, p.held,
+                                  out)
+        return self.batch_output(out)

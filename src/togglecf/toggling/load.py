@@ -9,7 +9,7 @@ from togglecf.core.io import file_sha256
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.models import load_bundle
 from togglecf.toggling.gains import load_gains
-from togglecf.toggling.inloop import InLoopModels, ModelTogglingFilter, ModelVQFTogglingFilter
+from togglecf.toggling.inloop import InLoopFilter, ModelTogglingFilter, ModelVQFTogglingFilter
 
 __all__ = ["load_toggling_filter", "load_compiled_models", "model_dir_digest", "training_trials_among"]
 
@@ -50,7 +50,7 @@ def load_compiled_models(model_dir) -> CompiledModels:
 IN_LOOP = {"toggling": ModelTogglingFilter, "vqf_toggling": ModelVQFTogglingFilter}
 
 
-def load_toggling_filter(model_dir, fs: float, use_mag: bool = True, kind: str = "toggling") -> InLoopModels:
+def load_toggling_filter(model_dir, fs: float, use_mag: bool = True, kind: str = "toggling") -> InLoopFilter:
     """A trained filter of a model directory: the models compiled for the loop, with the learned
     gains of ``kind`` (``"toggling"``: the toggling CF; ``"vqf_toggling"``: the VQF core with
     learned time constants) in 9D (``use_mag``) or 6D."""

@@ -184,10 +184,7 @@ HISTORY_SUFFIXES = {".py", ".c", ".h", ".toml", ".md", ".txt", ".cfg", ".ini", "
 #: merged, test_no_history_in_docstrings_and_guides is an expected failure listing them, and
 #: test_no_history_outside_files_under_rewrite holds every other file to the rule. Empty the
 #: dict (and remove that xfail) once they are fixed.
-PENDING_HISTORY = {
-    "src/togglecf/filters/toggling.py": "line 15 '**Fallback** (issue 12)'",
-    "src/togglecf/filters/vqf_toggling.py": "line 1 'learned, motion-dependent time constants (issue 13)'",
-}
+PENDING_HISTORY: dict = {}
 
 
 def history_hits(text: str) -> list[tuple[int, str]]:

@@ -180,8 +180,8 @@ def state_record(fields) -> tuple[np.dtype, tuple[str, ...]]:
 def record_view(dtype: np.dtype):
     """A numba function ``view(state) -> record``: the flat float64 ``state`` ``(n,)`` read as one
     record of the structured ``dtype`` (``state_record``), in place (writes go to ``state``). The
-    same as ``state.view(dtype)[0]`` without the new array and its reference count per call (30 ns
-    per sample, a tenth of the VQF core). Unchecked: ``state`` must be C-contiguous and hold at
+    same as ``state.view(dtype)[0]`` without a new array and its reference count per call (a cost
+    paid every sample). Unchecked: ``state`` must be C-contiguous and hold at
     least ``dtype.itemsize`` bytes, as a filter's state does (``OrientationFilter``)."""
     record = numba.from_dtype(dtype)
 
@@ -421,8 +421,8 @@ def vector_ok(v):
 @njit(cache=True, inline="always")
 def gyro_valid(gyr):
     """True for a usable gyro sample: every axis finite and below ``GYRO_FULL_SCALE`` (policy above)."""
-    # False for NaN too (comparisons with NaN are False). `&`, not `and`: the short-circuit form,
-    # inlined into gyro_increment, made the gyro-only filter ~8 % slower (bench_filters).
+    # False for NaN too (comparisons with NaN are False). `&`, not `and`: the short-circuit form's
+    # branches, inlined into gyro_increment, are slower than three comparisons (bench_filters).
     return (abs(gyr[0]) < GYRO_FULL_SCALE) & (abs(gyr[1]) < GYRO_FULL_SCALE) & (abs(gyr[2]) < GYRO_FULL_SCALE)
 
 

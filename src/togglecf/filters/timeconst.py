@@ -12,9 +12,9 @@ update is off; VQF's convention too). Like VQF, the coefficients use the nominal
 sample's Δt (the gyro is still integrated over the actual Δt): a jittery or gappy Δt changes the
 correction's time constant in proportion to the local rate error only.
 
-The defaults were converted from the former per-sample gains α at BROAD's rate (285.714 Hz) by
-``tau_from_gain`` (τ = −Ts/ln(1 − α)), rounded to 4 significant digits, so that at that rate they
-reproduce the former coefficients to < 1e-3 relative.
+``tau_from_gain`` (τ = −Ts/ln(1 − α)) gives the time constant of a per-sample gain α at a rate;
+the filters' defaults are such time constants, rounded to 4 significant digits, of gains tuned at
+BROAD's rate (285.714 Hz).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from numba import njit
 
 __all__ = ["BROAD_FS", "gain", "gain_from_tau", "tau_from_gain"]
 
-#: Hz, the rate of BROAD's IMU, at which the former per-sample gains were tuned
+#: Hz, the rate of BROAD's IMU, at which the per-sample gains behind the defaults were tuned
 BROAD_FS = 285.714
 
 

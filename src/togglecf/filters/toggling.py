@@ -106,7 +106,7 @@ class TogglingSettings(FilterSettings):
             probability (of their sum) is below it is not used; 0 (default): every valid one is.
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models (``gains.json``, format 2). They are
-    the former per-sample defaults at BROAD's 285.714 Hz, τ = −Ts/ln(1 − α) rounded to 4
+    per-sample gains at BROAD's 285.714 Hz as time constants, τ = −Ts/ln(1 − α) rounded to 4
     digits: α_acc (0.01, 0.0005) -> (0.3482, 6.998) s, α_mag (0.002, 0.0005) -> (1.748, 6.998) s,
     bias gain 0.002 -> 1.748 s, γ = 1 -> 0 s.
     """

@@ -222,8 +222,9 @@ class VQFCoreSettings(FilterSettings):
 
 class LowPass(NamedTuple):
     """One LP₂ (module docstring) in the delta form of ``_lp_bank``, as the C keeps it
-    (``tcf_vqf_lp_coef_t``): ``k`` = 4 b₀ = 1 + a₁ + a₂ and ``decay`` = a₂ = 1 − β (the C stores
-    β = 1 − a₂; the Python keeps a₂ itself, the factor it multiplies by). Dimensionless."""
+    (``tcf_vqf_lp_coef_t``): ``k`` = 4 b₀ = 1 + a₁ + a₂ and ``decay`` = a₂ (the C stores
+    ``one_minus_decay`` = 1 − a₂ instead, for its float32 update; the Python keeps a₂ itself, the factor
+    it multiplies by). Dimensionless."""
 
     k: float
     decay: float

@@ -113,7 +113,7 @@ class VQFTogglingSettings(VQFCoreSettings):
         mag_backoff_measured: False (default): the back-off of step 3 on the predicted
             disturbance, bounded by the core's rejection factor (the heading gain is at least
             k_mag / f_reject). True: on at most the disturbance the magnetometer itself shows
-            against the core's reference field (the default of models trained before 2026-12;
+            against the core's reference field (for models whose gains.json stores it;
             it keeps no gain where the core's reference is itself disturbed, e.g. a magnet
             attached from the start).
     """

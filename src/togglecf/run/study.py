@@ -201,7 +201,7 @@ class StudyPlan:
                       "rest_bias": {}}
         if "madgwick_rest_bias" in cfg.ablations and "madgwick" in cfg.baselines:
             self.grids["rest_bias"]["madgwick_rest_bias"] = rest_bias_grid(cfg.baselines["madgwick"], self.loaded,
-                                                                            names)
+                                                                           names)
         self.timing["baseline_grids_s"] = time.perf_counter() - t0
 
     def finish(self, done: dict, folds_s: float | None = None) -> dict:

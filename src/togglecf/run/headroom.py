@@ -15,7 +15,7 @@ inclination RMSE [deg], ``metrics.trial_errors``) with:
   groups (``finest_partition``);
 * ``trial_oracle`` (oracle): each trial at its own best pair;
 * ``true_labels``: the learned VQF's per-state settings driven by the *true* motion state
-  (``run.study.oracle_predictions``: what a perfect classifier would give), learned by the study's
+  (``run.study_rows.oracle_predictions``: what a perfect classifier would give), learned by the study's
   search (``[gains.vqf]``, from VQF's defaults) on each fold's training trials, scored on its test
   trials (the study's ``vqf_oracle`` ablation, within this dataset);
 * ``true_labels_tagp``: the same, with the descent started at the fold's TAGP and τ_acc, τ_mag searched
@@ -49,8 +49,8 @@ from togglecf.parallel.backend import LocalBackend
 from togglecf.registry import FilterSpec
 from togglecf.run.config import load_config
 from togglecf.run.scoring import grid_points, score_trial
-from togglecf.run.study import (learn_vqf_variant, load_study_config, oracle_predictions, tagp_on,
-                                vqf_variant_errors)
+from togglecf.run.study import load_study_config
+from togglecf.run.study_rows import learn_vqf_variant, oracle_predictions, tagp_on, vqf_variant_errors
 from togglecf.run.sweep import run_sweep
 from togglecf.toggling.gains import VQFGainSearch, describe_gains
 

@@ -108,3 +108,28 @@ def test_default_configs_are_package_data():
     assert load_study_config().folds >= 2
     with pytest.raises(FileNotFoundError, match="no packaged config"):
         config_path("nope.toml")
+
+
+#: the modules of ``togglecf.filters`` that may import the VQF core: the learned VQF (which runs it), the
+#: package's re-exports and the filter table (which names every filter class)
+VQF_CORE_IMPORTERS = {"vqf_toggling.py", "__init__.py", "catalog.py"}
+
+
+def _imported_modules(path: Path) -> set:
+    tree = ast.parse(path.read_text(), str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            out.add(node.module)
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+    return out
+
+
+def test_no_filter_depends_on_the_vqf_core_but_the_learned_vqf():
+    """Shared helpers (time-constant gains, quaternion load/store) live in ``filters.base`` and
+    ``filters.timeconst``: no other filter imports the 700-line VQF core for them."""
+    importers = {p.name for p in (SRC / "filters").glob("*.py")
+                 if "togglecf.filters.vqf_core" in _imported_modules(p)}
+    assert importers <= VQF_CORE_IMPORTERS, sorted(importers - VQF_CORE_IMPORTERS)
+    assert "vqf_toggling.py" in importers  # the rule reads real imports (it would pass on an empty scan)

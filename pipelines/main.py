@@ -29,6 +29,9 @@ cross-dataset protocol.
    re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
    training recordings, against VQF at its defaults and tuned on the same recordings
    (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md.
+8. With ``--full``: what could set VQF's two time constants on a dataset left out (``togglecf.run.travel``:
+   trial statistics of the sensor's own signals, a reference-free self-tuning, and their ceilings, each
+   scored on the second half of every trial) -> reports/travel/ (as ``python pipelines/travel.py``).
 
 Computed once, on one pool: the baseline grids of step 1 and Madgwick's grid of step 4 run first
 (their results are kept in build/cache/, keyed on the package's source and each trial file, and
@@ -41,7 +44,7 @@ instead of each compiling them at once. The gain searches reuse an evaluation th
 (``toggling.gains.EvaluationMemo``). Each step's wall time is logged, and all of them at the end.
 
     python pipelines/main.py [--skip-study]    # --skip-study: steps 2-5 on an existing reports/study
-    python pipelines/main.py --full            # + the study's ablations, steps 3, 6 and 7: what every table in
+    python pipelines/main.py --full            # + the study's ablations, steps 3, 6, 7 and 8: what every table in
                                                #   docs/results comes from
     python pipelines/main.py --lodo-only       # steps 4 and 5 alone
     python pipelines/main.py --pretrained-only # step 5 alone, on an existing reports/lodo/lodo.json
@@ -73,6 +76,7 @@ from togglecf.run.study import load_study_config, plan_study, run_study
 from togglecf.run.sweep import ResultStore
 from togglecf.run.train import run_training
 from togglecf.run.warmup import start_compiling
+from togglecf.run.travel import run_travel, travel_settings
 from togglecf.run.transfer import models_transfer, results_json, study_transfer, transfer_table, write_decimated
 
 DEFAULT_DOWNLOAD_DIR = Path("data/broad")
@@ -84,6 +88,7 @@ PRETRAINED_DIR = Path("reports/pretrained")
 PER_SENSOR_DIR = Path("reports/per_sensor")
 LODO_BUILD_DIR = Path("build/lodo")
 HEADROOM_DIR = Path("reports/headroom")
+TRAVEL_DIR = Path("reports/travel")
 CACHE_DIR = Path("build/cache")
 log = logging.getLogger("togglecf.main")
 
@@ -196,6 +201,8 @@ def main(argv=None) -> int:
             headroom(broad, store, command)
         if args.full and lodo is not None:
             each_sensor(lodo.dirs, command, store)
+        if args.full and not args.lodo_only:
+            what_travels(broad, command)
     log.info("make run: " + ", ".join(f"{k} {v / 60:.1f}" for k, v in STEP_TIMES.items())
              + f"; total {(time.perf_counter() - t0) / 60:.1f} min")
     return 0
@@ -278,6 +285,17 @@ def headroom(broad: Path, store: ResultStore, command: str) -> None:
     with step("headroom"):
         run_headroom(dataset_dirs(broad), HEADROOM_DIR, headroom_settings(), command, store=store)
     print((HEADROOM_DIR / "headroom.md").read_text())
+
+
+def what_travels(broad: Path, command: str) -> None:
+    """Step 8 (``--full``): reports/travel on BROAD and every dataset beside it (``run.travel``)."""
+    dirs = dataset_dirs(broad)
+    if len(dirs) < 2:
+        log.warning("no dataset beside BROAD: what travels between datasets is not measured")
+        return
+    with step("what travels"):
+        run_travel(dirs, TRAVEL_DIR, travel_settings(), command)
+    print((TRAVEL_DIR / "travel.md").read_text())
 
 
 def sensor(broad: Path, phone: Path, command: str) -> None:

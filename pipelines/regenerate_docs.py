@@ -503,6 +503,8 @@ RUN_TABLES = (
              "Run `python pipelines/per_sensor.py` (or `python pipelines/main.py --full`)."),
     RunTable("headroom", "reports/headroom", "headroom.md", "the headroom over VQF (pipelines/headroom.py)",
              "Run `python pipelines/headroom.py` (or `python pipelines/main.py --full`)."),
+    RunTable("travel", "reports/travel", "travel.md", "what could set VQF's time constants on a dataset left out "
+             "(pipelines/travel.py)", "Run `python pipelines/travel.py` (or `python pipelines/main.py --full`)."),
 )
 
 

@@ -80,6 +80,8 @@ FULL_RUN_FILES = {
     "reports/per_sensor/per_sensor.json": NOT_A_FILE,
     "reports/headroom/headroom.md": _table("## broad (2 trials, 2 folds)"),
     "reports/headroom/headroom.json": NOT_A_FILE,
+    "reports/travel/travel.md": _table("## Left out: broad (2 trials; chosen on the other datasets)"),
+    "reports/travel/travel.json": NOT_A_FILE,
     "build/transfer/models_broad/metadata.json": NOT_A_FILE,
 }
 #: what the other commands leave in the checkout by default: ``togglecf train`` (models/default) and the export
@@ -94,7 +96,7 @@ OTHER_RUN_FILES = {
 #: the tables ``regenerate_docs`` copies as the run wrote them: docs/results name -> path under the checkout
 COPIED = {"lodo.md": "reports/lodo/lodo.md", "transfer_rate.md": "reports/transfer/rate.md",
           "transfer_phone.md": "reports/transfer/phone.md", "per_sensor.md": "reports/per_sensor/per_sensor.md",
-          "headroom.md": "reports/headroom/headroom.md"}
+          "headroom.md": "reports/headroom/headroom.md", "travel.md": "reports/travel/travel.md"}
 
 
 def fill(root, full: bool = True, others: bool = True) -> list[Path]:

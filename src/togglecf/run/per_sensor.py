@@ -48,7 +48,7 @@ from togglecf.run.train import run_training
 from togglecf.toggling.pretrained import portable_from_model_dir
 
 __all__ = ["PerSensorConfig", "ROWS", "LEARNED_ROWS", "training_subsets", "vqf_grid", "base_models", "per_sensor",
-           "per_sensor_table", "per_sensor_json"]
+           "per_sensor_table", "per_sensor_json", "versus", "worst_group"]
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ def _mean(per: dict, names, metric: str = "total") -> float:
     return float(np.mean([per[n][metric] for n in names])) if names else float("nan")
 
 
-def _versus(per: dict, ref: dict, names) -> str:
+def versus(per: dict, ref: dict, names) -> str:
     """Relative change of the mean total RMSE, wins / ties / losses and Wilcoxon p of ``per`` against ``ref``."""
     if len(names) < 2:
         return ""
@@ -228,7 +228,7 @@ def _versus(per: dict, ref: dict, names) -> str:
     return f"{rel:+.1f} % · {t['wins']}/{t['ties']}/{t['losses']} · p {t['p']:.2g}"
 
 
-def _worst_group(per: dict, ref: dict, groups: dict) -> str:
+def worst_group(per: dict, ref: dict, groups: dict) -> str:
     """The group (of at least two trials) where ``per`` is worst against ``ref``, relative mean change."""
     worst = None
     for g, members in groups.items():
@@ -269,8 +269,8 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
                 if len(rows.get(r, {})) != len(names):
                     cmp += ["", "", ""]
                     continue
-                cmp += [_versus(rows[r], rows["vqf_defaults"], names), _versus(rows[r], rows["vqf_tuned"], names),
-                        _worst_group(rows[r], rows["vqf_defaults"], index.groups)]
+                cmp += [versus(rows[r], rows["vqf_defaults"], names), versus(rows[r], rows["vqf_tuned"], names),
+                        worst_group(rows[r], rows["vqf_defaults"], index.groups)]
             lines.append(f"| {size or 'all'} | " + " | ".join(cells + cmp) + " |")
         lines.append("")
     return "\n".join(lines)

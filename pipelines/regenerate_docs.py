@@ -22,10 +22,12 @@ placeholder saying how to produce it when there is no file yet):
   ``study_highlights.md`` (the comparisons in words, computed), ``study_groups.md`` (per BROAD group,
   Δ to Madgwick, the fixed CF and VQF), ``study_ablations.md``, ``study_folds.md`` (learned gains and
   baseline TAGPs per fold), ``study_per_trial.md``.
-* ``--bench``: runs ``pipelines/bench_filters.py``, ``bench_features.py``, ``bench_vqf_core.py`` and,
-  when ``--models`` holds a trained model, ``bench_toggling.py`` in their full mode (``--quick``: their
-  quick mode, where a script has one) and captures the table each prints (none of them writes a file)
-  into ``bench_<name>.md``. ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
+* ``--bench``: runs ``pipelines/bench_filters.py``, ``bench_features.py``, ``bench_vqf_core.py``,
+  ``bench_cycles.py`` (the Cortex-M4F cycle estimate of the C filters; it trains its own small model)
+  and, when ``--models`` holds a trained model, ``bench_toggling.py`` in their full mode (``--quick``:
+  their quick mode, where a script has one) and captures the table each prints into
+  ``bench_<name>.md``; ``--only NAME ...`` runs only those (the other tables are kept).
+  ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
   extra) into ``bench_dask.md``.
 * ``--sweep DIR`` (default ``build/embedded/default/sweep``; read: ``sweep.csv``, ``pareto.csv``):
   ``sweep.md``.
@@ -71,7 +73,7 @@ SCRIPT = "python pipelines/regenerate_docs.py"
 
 ABLATIONS = {a: ABLATION_LABELS.get(a, a) for a in ABLATION_ROWS}
 LEVEL = 0.05  # |Δ| [°] below which a group comparison is called level
-BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling")
+BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling", "bench_cycles")
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -530,6 +532,8 @@ def main(argv=None) -> int:
     p.add_argument("--study", default=None, metavar="DIR", help="study output (default: reports/study if present)")
     p.add_argument("--bench", action="store_true", help="run the benchmarks and capture their tables")
     p.add_argument("--quick", action="store_true", help="with --bench: the benchmarks' quick modes")
+    p.add_argument("--only", nargs="+", choices=BENCHMARKS, default=None, metavar="NAME",
+                   help="with --bench: run only these benchmarks (e.g. bench_cycles); the other tables are kept")
     p.add_argument("--bench-dask", action="store_true", help="also run bench_dask.py (minutes)")
     p.add_argument("--sweep", default=None, metavar="DIR",
                    help="pruning sweep directory (default: build/embedded/default/sweep if present)")
@@ -604,9 +608,10 @@ def main(argv=None) -> int:
         placeholder(out, "embedded_sizes.md", "An export's `build/embedded/default/filter/filter_report.json`",
                     f"Run `python pipelines/export_embedded.py`, then `{SCRIPT} --export build/embedded/default`.")
 
-    bench_cmd = f"{SCRIPT} --bench" + (" --quick" if args.quick else "")
+    bench_cmd = f"{SCRIPT} --bench" + (" --quick" if args.quick else "") + (f" --only {' '.join(args.only)}"
+                                                                             if args.only else "")
     if args.bench:
-        for name in BENCHMARKS:
+        for name in args.only or BENCHMARKS:
             extra = []
             if name == "bench_toggling":
                 if not (models / "metadata.json").is_file():

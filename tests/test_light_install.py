@@ -30,7 +30,7 @@ from togglecf.toggling.pretrained import PRETRAINED_FILE
 ROOT = Path(__file__).resolve().parents[1]
 #: what the extras install (top-level module names); none of it may be needed by a light install
 HEAVY = ("xgboost", "sklearn", "pandas", "matplotlib", "mpl_toolkits", "treelite", "tl2cgen", "tqdm",
-         "serial", "dask", "distributed", "vqf")
+         "serial", "dask", "distributed", "vqf", "unicorn", "capstone")
 
 _PRELUDE = """
 import importlib.abc, json, sys

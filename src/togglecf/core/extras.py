@@ -21,6 +21,8 @@ stores the trees as ``inloop_forest.json``, read without XGBoost). The rest are 
 * ``import``: qmt, the BROAD authors' toolbox (``togglecf import --reference``: clock synchronisation,
   IMU-to-marker and reference-frame alignment, magnetometer calibration; an import without a
   reference needs nothing);
+* ``embedded``: unicorn, capstone (the Cortex-M4F cycle estimate of the exported C filters,
+  ``togglecf.embedded.cycles``; with the system's ``arm-none-eabi-gcc``);
 * ``all``: every extra.
 
 An optional module is imported where it is used, through ``require`` (or bound at module level with
@@ -45,6 +47,7 @@ EXTRAS = {
     "dask": ("dask", "distributed"),
     "import": ("qmt",),
     "vqf": ("vqf",),
+    "embedded": ("unicorn", "capstone"),
 }
 
 

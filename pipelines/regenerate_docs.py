@@ -22,7 +22,8 @@ placeholder saying how to produce it when there is no file yet):
   ``study_highlights.md`` (the comparisons in words, computed), ``study_groups.md`` (per BROAD group,
   Δ to Madgwick, the fixed CF and VQF), ``study_ablations.md``, ``study_folds.md`` (learned gains and
   baseline TAGPs per fold), ``study_per_trial.md``.
-* ``--bench``: runs ``pipelines/bench_filters.py``, ``bench_features.py``, ``bench_vqf_core.py`` and,
+* ``--bench``: runs ``pipelines/bench_filters.py``, ``bench_features.py``, ``bench_vqf_core.py``,
+  ``bench_learned_vqf.py`` (the pretrained model the package ships) and,
   when ``--models`` holds a trained model, ``bench_toggling.py`` in their full mode (``--quick``: their
   quick mode, where a script has one) and captures the table each prints (none of them writes a file)
   into ``bench_<name>.md``. ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
@@ -71,7 +72,7 @@ SCRIPT = "python pipelines/regenerate_docs.py"
 
 ABLATIONS = {a: ABLATION_LABELS.get(a, a) for a in ABLATION_ROWS}
 LEVEL = 0.05  # |Δ| [°] below which a group comparison is called level
-BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling")
+BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling", "bench_learned_vqf")
 
 
 # --------------------------------------------------------------------------------------------- helpers

@@ -63,8 +63,9 @@ def portable_off(tiny_model_dir, tmp_path_factory):
     """A portable file of the tiny models whose learned settings are the core's in 9D and 6D (learning off)."""
     d = tmp_path_factory.mktemp("pre_off") / "m"
     shutil.copytree(tiny_model_dir, d)
-    with_fixed_gains(d, lambda classes, static, use_mag: VQFTogglingSettings(states=tuple(classes), confidence_floor=0.3,
-                                                                              modulation_tau=2.0))
+    def settings(classes, static, use_mag):
+        return VQFTogglingSettings(states=tuple(classes), confidence_floor=0.3, modulation_tau=2.0)
+    with_fixed_gains(d, settings)
     return portable_from_model_dir(d, tmp_path_factory.mktemp("npz_off") / "off.npz", {"note": "off"})
 
 

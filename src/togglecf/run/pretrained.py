@@ -130,7 +130,8 @@ def _what_it_changes(mode: str, s: dict) -> str:
         return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; what the models change is the heading "
                 f"back-off (σ_m {s['mag_disturbance_scale']:g} µT, {_backoff_law(s)}).")
     if same_tau:
-        return f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; the models change the other settings above."
+        return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; the models change the other settings "
+                "above.")
     return f"{mode}: τ_acc per state as above, against VQF's {s['tau_acc']:g} s."
 
 

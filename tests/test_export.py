@@ -279,7 +279,8 @@ def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
         toolchain.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")
 
 
-def test_export_without_models_writes_the_pretrained_learned_vqf(mini_trial, tmp_path, capsys):
+@pytest.mark.parametrize("use_mag", [True, False], ids=["9D", "6D"])
+def test_export_without_models_writes_the_pretrained_learned_vqf(use_mag, mini_trial, tmp_path, capsys):
     """``export --filter vqf_toggling`` with no ``--models``: the shipped portable model as the C filter,
     which computes what ``LearnedVQF`` computes. Where the shipped settings learn nothing
     (``learning_off``) both run the core alone (``TCF_LEARNING_OFF 1``: no trees walked, no prediction
@@ -297,24 +298,26 @@ def test_export_without_models_writes_the_pretrained_learned_vqf(mini_trial, tmp
     if not PRETRAINED_FILE.is_file():
         pytest.skip("this checkout ships no pretrained model")
     out = tmp_path / "emb"
-    assert main(["export", "--filter", "vqf_toggling", "--no-riscv", "--out", str(out)]) == 0
+    mode = [] if use_mag else ["--6d"]
+    assert main(["export", "--filter", "vqf_toggling", "--no-riscv", "--out", str(out), *mode]) == 0
     report = json.loads((out / "export_report.json").read_text())
     assert report["source"] == str(PRETRAINED_FILE) and set(report) == {"source", "filter"}  # no XGBoost trees
     config = (out / "filter" / "tcf_config.h").read_text()
     assert file_sha256(PRETRAINED_FILE)[:12] in config  # names its model
     t = mini_trial
-    f = LearnedVQF(t.fs)
-    py = f.update_batch(t.gyr, t.acc, t.mag)
+    mag = t.mag if use_mag else None
+    f = LearnedVQF(t.fs, use_mag=use_mag)
+    py = f.update_batch(t.gyr, t.acc, mag)
     assert f"#define TCF_LEARNING_OFF {int(f.runs_core_alone)}" in config
     exe = cv.build_vqft_harness(out / "filter")
     if f.runs_core_alone:
-        qc, diag = cv.run_vqft_harness(exe, t.gyr, t.acc, t.mag, diagnostics=True, fs=t.fs)
+        qc, diag = cv.run_vqft_harness(exe, t.gyr, t.acc, mag, diagnostics=True, fs=t.fs)
         assert np.isnan(diag[f"p_{report['filter']['class_names'][0]}"]).all()  # the trees never ran
     else:
         names = [f"p_{c}" for c in report["filter"]["class_names"]] + [
             f"eta_{k}_{ax}" for k in ("acc", "mag") for ax in "xyz"]
         P = np.stack([py.diagnostics[k] for k in names], axis=1)
-        qc = cv.run_vqft_harness(exe, t.gyr, t.acc, t.mag, predictions=P, fs=t.fs)
+        qc = cv.run_vqft_harness(exe, t.gyr, t.acc, mag, predictions=P, fs=t.fs)
     assert np.degrees(angle_between(qc, py.quat)).max() <= 0.001
 
 

@@ -23,11 +23,11 @@ placeholder saying how to produce it when there is no file yet):
   Δ to Madgwick, the fixed CF and VQF), ``study_ablations.md``, ``study_folds.md`` (learned gains and
   baseline TAGPs per fold), ``study_per_trial.md``.
 * ``--bench``: runs ``pipelines/bench_filters.py``, ``bench_features.py``, ``bench_vqf_core.py``,
-  ``bench_cycles.py`` (the Cortex-M4F cycle estimate of the C filters; it trains its own small model)
-  and, when ``--models`` holds a trained model, ``bench_toggling.py`` in their full mode (``--quick``:
-  their quick mode, where a script has one) and captures the table each prints into
-  ``bench_<name>.md``; ``--only NAME ...`` runs only those (the other tables are kept).
-  ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
+  ``bench_learned_vqf.py`` (the pretrained model the package ships), ``bench_cycles.py`` (the Cortex-M4F
+  cycle estimate of the C filters; it trains its own small model) and, when ``--models`` holds a trained
+  model, ``bench_toggling.py`` in their full mode (``--quick``: their quick mode, where a script has one) and
+  captures the table each prints into ``bench_<name>.md``; ``--only NAME ...`` runs only those (the other
+  tables are kept). ``--bench-dask`` also runs ``bench_dask.py`` (minutes; needs the dask
   extra) into ``bench_dask.md``.
 * ``--sweep DIR`` (default ``build/embedded/default/sweep``; read: ``sweep.csv``, ``pareto.csv``):
   ``sweep.md``.
@@ -73,7 +73,8 @@ SCRIPT = "python pipelines/regenerate_docs.py"
 
 ABLATIONS = {a: ABLATION_LABELS.get(a, a) for a in ABLATION_ROWS}
 LEVEL = 0.05  # |Δ| [°] below which a group comparison is called level
-BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling", "bench_cycles")
+BENCHMARKS = ("bench_filters", "bench_features", "bench_vqf_core", "bench_toggling", "bench_learned_vqf",
+              "bench_cycles")
 
 
 # --------------------------------------------------------------------------------------------- helpers

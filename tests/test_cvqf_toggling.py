@@ -444,6 +444,7 @@ def test_report_state_size_and_code_size(exported):
                                      "Makefile"} <= names
     config = (Path(rep["out_dir"]) / "tcf_config.h").read_text()
     assert "TCF_VQFT_LN_TAU_ACC_INIT" in config and f"#define TCF_WINDOW_MAX {L}" in config
+    assert "#define TCF_LEARNING_OFF 0" in config  # the models steer it: features and trees in the update
     assert (Path(rep["out_dir"]) / "vqf_toggling_report.json").is_file()
     host = rep["code_bytes"]["host"]
     assert 0 < rep["code_bytes_trees"]["host"] < host <= CODE_MAX * 1.5, rep["code_bytes"]

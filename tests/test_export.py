@@ -279,11 +279,14 @@ def test_stack_usage_of_the_array_walker(synthetic, tmp_path):
         toolchain.stack_usage(tmp_path / "tcf_forest.c", [tmp_path], "no_such_function")
 
 
-def test_export_without_models_writes_the_pretrained_learned_vqf(mini_trial, tmp_path, capsys):
+@pytest.mark.parametrize("use_mag", [True, False], ids=["9D", "6D"])
+def test_export_without_models_writes_the_pretrained_learned_vqf(use_mag, mini_trial, tmp_path, capsys):
     """``export --filter vqf_toggling`` with no ``--models``: the shipped portable model as the C filter,
-    which computes what ``LearnedVQF`` computes. Driven by the Python filter's own predictions the C is
-    float32 against float64 arithmetic only: within the bound the model-directory export is held to on
-    the same cut (``test_cvqf_toggling.ARITH_TOL["mini"]``, 0.001°)."""
+    which computes what ``LearnedVQF`` computes. Where the shipped settings learn nothing
+    (``learning_off``) both run the core alone (``TCF_LEARNING_OFF 1``: no trees walked, no prediction
+    held) and the C is float32 against float64 arithmetic only; else the C driven by the Python
+    filter's own predictions is. Either within the bound the model-directory export is held to on the
+    same cut (``test_cvqf_toggling.ARITH_TOL["mini"]``, 0.001°)."""
     import json
 
     from togglecf.cli.main import main
@@ -295,16 +298,26 @@ def test_export_without_models_writes_the_pretrained_learned_vqf(mini_trial, tmp
     if not PRETRAINED_FILE.is_file():
         pytest.skip("this checkout ships no pretrained model")
     out = tmp_path / "emb"
-    assert main(["export", "--filter", "vqf_toggling", "--no-riscv", "--out", str(out)]) == 0
+    mode = [] if use_mag else ["--6d"]
+    assert main(["export", "--filter", "vqf_toggling", "--no-riscv", "--out", str(out), *mode]) == 0
     report = json.loads((out / "export_report.json").read_text())
     assert report["source"] == str(PRETRAINED_FILE) and set(report) == {"source", "filter"}  # no XGBoost trees
-    assert file_sha256(PRETRAINED_FILE)[:12] in (out / "filter" / "tcf_config.h").read_text()  # names its model
+    config = (out / "filter" / "tcf_config.h").read_text()
+    assert file_sha256(PRETRAINED_FILE)[:12] in config  # names its model
     t = mini_trial
-    py = LearnedVQF(t.fs).update_batch(t.gyr, t.acc, t.mag)
-    names = [f"p_{c}" for c in report["filter"]["class_names"]] + [
-        f"eta_{k}_{ax}" for k in ("acc", "mag") for ax in "xyz"]
-    P = np.stack([py.diagnostics[k] for k in names], axis=1)
-    qc = cv.run_vqft_harness(cv.build_vqft_harness(out / "filter"), t.gyr, t.acc, t.mag, predictions=P, fs=t.fs)
+    mag = t.mag if use_mag else None
+    f = LearnedVQF(t.fs, use_mag=use_mag)
+    py = f.update_batch(t.gyr, t.acc, mag)
+    assert f"#define TCF_LEARNING_OFF {int(f.runs_core_alone)}" in config
+    exe = cv.build_vqft_harness(out / "filter")
+    if f.runs_core_alone:
+        qc, diag = cv.run_vqft_harness(exe, t.gyr, t.acc, mag, diagnostics=True, fs=t.fs)
+        assert np.isnan(diag[f"p_{report['filter']['class_names'][0]}"]).all()  # the trees never ran
+    else:
+        names = [f"p_{c}" for c in report["filter"]["class_names"]] + [
+            f"eta_{k}_{ax}" for k in ("acc", "mag") for ax in "xyz"]
+        P = np.stack([py.diagnostics[k] for k in names], axis=1)
+        qc = cv.run_vqft_harness(exe, t.gyr, t.acc, mag, predictions=P, fs=t.fs)
     assert np.degrees(angle_between(qc, py.quat)).max() <= 0.001
 
 

@@ -15,11 +15,13 @@ import pytest
 from conftest import with_fixed_gains
 
 from togglecf.core.io import file_sha256
+from togglecf.filters.vqf_core import VQFCoreFilter
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.learn.portable import PORTABLE_FORMAT, load_portable
 from togglecf.run.pretrained import NO_HARM_MARGIN, dataset_notice, model_card, no_harm_check
 from togglecf.toggling import load_toggling_filter
-from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, portable_from_model_dir
+from togglecf.toggling.inloop import ModelVQFTogglingFilter
+from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, portable_from_model_dir, pretrained_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,7 +54,80 @@ def test_portable_file_runs_the_model_directory_filter_bit_for_bit(vqf_dir, port
         assert np.array_equal(a.quat, b.quat)
         assert np.array_equal(a.diagnostics["tau_acc"], b.diagnostics["tau_acc"])
         assert np.unique(b.diagnostics["tau_acc"]).size > 2  # the models steer it (not the core alone)
+        assert not mine.runs_core_alone and not mine.settings.learning_off(use_mag)
     assert LearnedVQF(t.fs, model=portable).model_metadata == {"note": "test"}
+
+
+@pytest.fixture(scope="module")
+def portable_off(tiny_model_dir, tmp_path_factory):
+    """A portable file of the tiny models whose learned settings are the core's in 9D and 6D (learning off)."""
+    d = tmp_path_factory.mktemp("pre_off") / "m"
+    shutil.copytree(tiny_model_dir, d)
+    def settings(classes, static, use_mag):
+        return VQFTogglingSettings(states=tuple(classes), confidence_floor=0.3, modulation_tau=2.0)
+    with_fixed_gains(d, settings)
+    return portable_from_model_dir(d, tmp_path_factory.mktemp("npz_off") / "off.npz", {"note": "off"})
+
+
+def test_learning_off_needs_every_learned_term_off():
+    """``VQFTogglingSettings.learning_off``: per-state values equal to the core's and no learned term
+    active; σ_m and w_m count in 9D only; the confidence floor and modulation_tau change nothing then."""
+    base = VQFTogglingSettings(states=("a", "b"), confidence_floor=0.5, modulation_tau=3.0)
+    assert base.learning_off(True) and base.learning_off(False)
+    for field in ("tau_acc_states", "tau_mag_states", "bias_sigma_motion_states", "rest_th_gyr_states",
+                  "rest_th_acc_states"):
+        vals = getattr(base, field)
+        other = VQFTogglingSettings(**{**asdict(base), field: (vals[0], vals[1] * 1.5)})
+        assert not other.learning_off(True) and not other.learning_off(False), field
+    assert not VQFTogglingSettings(**{**asdict(base), "noise_weight_acc": 0.1}).learning_off(False)
+    for mag_term in ({"mag_disturbance_scale": 5.0}, {"noise_weight_mag": 0.5}):
+        s = VQFTogglingSettings(**{**asdict(base), **mag_term})
+        assert not s.learning_off(True) and s.learning_off(False), mag_term  # 6D ignores the magnetometer
+    changed_core = VQFTogglingSettings(states=("a", "b"), tau_acc=5.0)  # per-state values default to the core's
+    assert changed_core.learning_off(True)
+
+
+def test_learned_vqf_with_learning_off_runs_the_core_alone(portable_off, mini_trial):
+    """Learning off: ``LearnedVQF`` is ``VQFCoreFilter`` with the core settings, bit for bit (no trees, no
+    feature window, the core's diagnostics). The models in the loop with the same settings give the same
+    orientation within rounding only: a prediction makes the learned path rebuild the core's
+    coefficients from exp(Σ p_s ln τ_s), one ulp off τ. Largest difference measured on real data
+    (BROAD 05 and 24, Nexus 5 AR; 9D and 6D): 3.3e-15 per quaternion component, hence 1e-12."""
+    t = mini_trial
+    for use_mag in (True, False):
+        mag = t.mag if use_mag else None
+        f = LearnedVQF(t.fs, use_mag=use_mag, model=portable_off)
+        assert f.runs_core_alone and isinstance(f.runner, VQFCoreFilter) and f.use_mag == use_mag
+        out = f.update_batch(t.gyr, t.acc, mag)
+        core = VQFCoreFilter(t.fs, f.settings.core_settings, use_mag=use_mag).update_batch(t.gyr, t.acc, mag)
+        assert np.array_equal(out.quat, core.quat) and set(out.diagnostics) == set(core.diagnostics)
+        assert "fallback" not in out.diagnostics and f.diagnostic_names == VQFCoreFilter.diagnostic_names
+        inloop = ModelVQFTogglingFilter(t.fs, f.settings, models=f.models, use_mag=use_mag).update_batch(t.gyr, t.acc,
+                                                                                                         mag)
+        assert np.isfinite(inloop.diagnostics["p_" + f.settings.states[0]]).any()  # the trees did predict
+        assert np.abs(inloop.quat - out.quat).max() <= 1e-12
+
+
+def test_learned_vqf_core_alone_update_equals_batch_and_state_restores(portable_off, mini_trial):
+    t = mini_trial
+    n = 1500
+    batch = LearnedVQF(t.fs, model=portable_off).update_batch(t.gyr[:n], t.acc[:n], t.mag[:n]).quat
+    f = LearnedVQF(t.fs, model=portable_off)
+    assert np.array_equal(np.array([f.update(t.gyr[i], t.acc[i], t.mag[i]) for i in range(n)]), batch)
+    assert np.array_equal(f.quat, batch[-1])
+    g = LearnedVQF(t.fs, model=portable_off)
+    g.update_batch(t.gyr[:700], t.acc[:700], t.mag[:700])
+    h = LearnedVQF(t.fs, model=portable_off)
+    h.set_state(g.get_state())
+    assert np.array_equal(h.update_batch(t.gyr[700:n], t.acc[700:n], t.mag[700:n]).quat, batch[700:])
+    h.reset()
+    assert np.array_equal(h.update_batch(t.gyr[:n], t.acc[:n], t.mag[:n]).quat, batch)
+
+
+@pytest.mark.skipif(not PRETRAINED_FILE.is_file(), reason="this checkout ships no pretrained model")
+def test_shipped_model_runs_the_core_alone_where_its_settings_learn_nothing():
+    for use_mag in (True, False):
+        assert LearnedVQF(100.0, use_mag=use_mag).runs_core_alone == pretrained_settings(use_mag).learning_off(use_mag)
 
 
 def test_same_model_same_bytes_and_numpy_reads_it(vqf_dir, portable, tmp_path):

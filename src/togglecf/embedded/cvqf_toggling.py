@@ -14,10 +14,12 @@ per-sample coefficient and the features' window and hop from it and the settings
   ln τ_acc, ln τ_mag, ln σ_motion with confidence λ -> coefficients, recomputed only when the
   probabilities change; noise removal; the core step), float32, no heap, one fixed-size
   ``tcf_vqft_t``;
-* ``tcf_config.h`` (generated: the feature settings in seconds, ``TCF_MAX_FS`` and the ring size
-  ``TCF_WINDOW_MAX``, the harness's default rate ``TCF_DEFAULT_FS``, the out-of-range fallback's
-  feature bounds, class names, the per-state values as natural logarithms ``TCF_VQFT_LN_*``,
-  confidence floor, noise weights, model/gains hashes) and ``tcf_vqf_config.h`` (the core's
+* ``tcf_config.h`` (generated: ``TCF_LEARNING_OFF`` (1 where the mode's settings learn
+  nothing: ``tcf_vqft_update`` runs the core alone, as ``LearnedVQF``), the feature settings in
+  seconds, ``TCF_MAX_FS`` and the ring size ``TCF_WINDOW_MAX``, the harness's default rate
+  ``TCF_DEFAULT_FS``, the out-of-range fallback's feature bounds, class names, the per-state
+  values as natural logarithms ``TCF_VQFT_LN_*``, confidence floor, noise weights, model/gains
+  hashes) and ``tcf_vqf_config.h`` (the core's
   settings of ``gains.json``, i.e. the fallback, as ``TCF_VQF_PARAMS_INIT``);
 * ``tcf_forest.{h,c}``: the merged forest without the trees the filter never uses (η̂_a at
   w_a = 0, η̂_m in 6D or at w_m = 0), as ``ModelVQFTogglingFilter`` walks it;
@@ -87,11 +89,15 @@ def state_bytes_formula(window_max: int, n_classes: int) -> int:
 
 
 def _filter_defines(filt) -> str:
-    """The learned VQF filter's own lines of ``tcf_config.h``: the per-state values as natural
-    logarithms, the core's ones (the fallback), back-off, confidence floor, noise weights and
-    the followed modulation."""
+    """The learned VQF filter's own lines of ``tcf_config.h``: ``TCF_LEARNING_OFF`` (1: the settings
+    learn nothing in this mode, ``VQFTogglingSettings.learning_off``; the update runs the core alone),
+    the per-state values as natural logarithms, the core's ones (the fallback), back-off, confidence
+    floor, noise weights and the followed modulation."""
     s, p = filt.settings, filt.params
-    return f"""/* learned time constants (filters.vqf_toggling, steps 1-3), per class in the order above, as
+    return f"""/* learning off (VQFTogglingSettings.learning_off: every learned value of this mode equals the core's):
+ * 1: tcf_vqft_update runs the VQF core alone, no features pushed, no trees walked (as LearnedVQF) */
+#define TCF_LEARNING_OFF {1 if s.learning_off(filt.use_mag) else 0}
+/* learned time constants (filters.vqf_toggling, steps 1-3), per class in the order above, as
  * natural logarithms (the blend is in ln tau): tau_acc [s] {', '.join(f'{t:g}' for t in s.tau_acc_states)};
  * tau_mag [s] {', '.join(f'{t:g}' for t in s.tau_mag_states)}; sigma_motion [deg/s] {', '.join(f'{t:g}' for t in s.bias_sigma_motion_states)}
  * (ln of rad/s). The core's own values (the fallback: no prediction, or low confidence):

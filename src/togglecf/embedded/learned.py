@@ -22,7 +22,8 @@ from togglecf.features.windows import LAST_CHANNELS, WINDOW_CHANNELS, hop_length
 from togglecf.filters.prediction import PredictionLayout
 from togglecf.toggling.gains import GAINS_FILE, mode_name
 from togglecf.toggling.load import load_toggling_filter
-from togglecf.toggling.pretrained import LearnedVQF, load_pretrained
+from togglecf.toggling.inloop import ModelVQFTogglingFilter
+from togglecf.toggling.pretrained import load_pretrained, pretrained_settings
 
 __all__ = ["FEATURE_TEMPLATES", "FEATURE_HEADERS", "DEFAULT_MAX_FS", "PORTABLE_DEFAULT_FS", "ModelExport",
            "load_model_export", "load_portable_export", "model_export", "check_model_dir", "check_rate",
@@ -232,8 +233,9 @@ def load_model_export(model_dir, fs, use_mag: bool, kind: str, max_fs: float = D
 
 def load_portable_export(path, fs, use_mag: bool, max_fs: float) -> ModelExport:
     """``load_model_export`` of a portable model file (``learn.portable``: the pretrained learned VQF the
-    package ships, or ``togglecf train --from-pretrained``'s): its learned VQF (``LearnedVQF``) in 9D or
-    6D, rate-free (``max_fs`` [Hz]); ``fs`` only the harness's default rate (None: ``PORTABLE_DEFAULT_FS``).
+    package ships, or ``togglecf train --from-pretrained``'s): its learned VQF with the models in the loop
+    (``ModelVQFTogglingFilter``, what ``LearnedVQF`` runs unless learning is off) in 9D or 6D, rate-free
+    (``max_fs`` [Hz]); ``fs`` only the harness's default rate (None: ``PORTABLE_DEFAULT_FS``).
     The file holds models and settings: its sha256 is recorded as both hashes."""
     path = Path(path)
     pm = load_pretrained(path)  # a bad file: refused with what it is
@@ -243,8 +245,9 @@ def load_portable_export(path, fs, use_mag: bool, max_fs: float) -> ModelExport:
     fs = check_rate(fs if fs is not None else PORTABLE_DEFAULT_FS)
     check_feature_layout()
     digest = file_sha256(path)
-    return model_export(path, {"feature_schema": {"hash": pm.models.schema_hash}}, fs,
-                        LearnedVQF(fs, use_mag=use_mag, model=path), max_fs, model_hash=digest, gains_hash=digest)
+    filt = ModelVQFTogglingFilter(fs, pretrained_settings(use_mag, path), models=pm.models, use_mag=use_mag)
+    return model_export(path, {"feature_schema": {"hash": pm.models.schema_hash}}, fs, filt, max_fs,
+                        model_hash=digest, gains_hash=digest)
 
 
 def learned_config(ex: ModelExport, model_dir: Path, use_mag: bool, filter_line: str) -> tuple[list, str]:

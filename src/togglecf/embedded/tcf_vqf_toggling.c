@@ -24,6 +24,9 @@
 #error "tcf_config.h must define TCF_VQFT_FOLLOW and TCF_VQFT_MODULATION_TAU (re-export it)"
 #endif
 
+#if !defined(TCF_LEARNING_OFF)
+#error "tcf_config.h must define TCF_LEARNING_OFF (export it again)"
+#endif
 #if !defined(TCF_VQFT_MAG_BACKOFF_MEASURED)
 #error "tcf_config.h must define TCF_VQFT_MAG_BACKOFF_MEASURED (re-export it)"
 #endif
@@ -223,8 +226,14 @@ int tcf_vqft_init(tcf_vqft_t *f, float fs) {
 
 void tcf_vqft_update_dt(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3], float dt) {
   if (mag == NULL) mag = tcf_vqft_zeros;
+#if TCF_LEARNING_OFF
+  /* every learned value equals the core's: the core alone at its own coefficients (f->mod stays
+     tcf_vqf_base_mod), as LearnedVQF; no features pushed, no trees walked */
+  tcf_vqf_update_mod(&f->core, gyr, acc, mag, dt, &f->mod);
+#else
   tcf_features_push(&f->feat, gyr, acc, mag);
   tcf_vqft_step(f, gyr, acc, mag, dt);
+#endif
 }
 
 void tcf_vqft_update(tcf_vqft_t *f, const float gyr[3], const float acc[3], const float mag[3]) {

@@ -15,6 +15,9 @@
  * then step 4 (noise removal a - w_a eta_a, m - w_m eta_m) and step 5, the VQF core
  * (tcf_vqf.{h,c}, tcf_vqf_update_mod) with those coefficients. No prediction (NaN: before the
  * first full window, or the window was out of the training range) -> the core's own settings.
+ * TCF_LEARNING_OFF 1 (tcf_config.h: every learned value of the exported mode equals the core's):
+ * tcf_vqft_update / tcf_vqft_update_dt run the core alone (no features, no trees; the API and
+ * tcf_vqft_t stay the same, the prediction stays NaN).
  *
  * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth, earth
  * frame ENU. Units: gyr rad/s, acc m/s^2, mag uT.

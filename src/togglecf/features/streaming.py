@@ -115,44 +115,40 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
 def window_features(ring, aux, out):
     """Feature row of the window ending at the last pushed sample (needs ``L`` samples).
 
-    Rows outer, channels inner (the ring is row-major; every channel still sums its samples in
-    ring order, so the values are those of a per-channel loop bit for bit, and memory is read in
-    order)."""
+    Channels outer, samples inner: each channel's sum, extremes and squared deviations are summed in
+    ring order in local variables (kept in registers; accumulators in arrays would be stored and
+    reloaded at every sample, as numba cannot prove they do not alias the ring), the same values bit
+    for bit as a loop over the rows."""
     L = ring.shape[0]
     nw = ring.shape[1] - 1
-    acc = np.empty((4, nw))
-    s, lo, hi, ss = acc[0], acc[1], acc[2], acc[3]
     for c in range(nw):
-        s[c] = 0.0
-        lo[c] = ring[0, c]
-        hi[c] = ring[0, c]
-        ss[c] = 0.0
-    e = 0.0
-    for i in range(L):
-        for c in range(nw):
+        s = 0.0
+        lo = ring[0, c]
+        hi = ring[0, c]
+        for i in range(L):
             v = ring[i, c]
-            s[c] += v
-            if v < lo[c]:
-                lo[c] = v
-            if v > hi[c]:
-                hi[c] = v
-        e += ring[i, nw]
-    for c in range(nw):
-        s[c] = s[c] / L  # the mean (non-finite with a non-finite value in the window: then unused)
-    for i in range(L):
-        for c in range(nw):
-            d = ring[i, c] - s[c]
-            ss[c] += d * d
-    for c in range(nw):
-        if not math.isfinite(s[c]):  # (the mean: finite iff the sum is) a non-finite value in the window:
+            s += v
+            if v < lo:
+                lo = v
+            if v > hi:
+                hi = v
+        mean = s / L  # non-finite with a non-finite value in the window: then unused
+        if not math.isfinite(mean):  # (finite iff the sum is) a non-finite value in the window:
             # the channel's stats are missing
             for j in range(4):
                 out[4 * c + j] = math.nan
             continue
-        out[4 * c] = s[c]
-        out[4 * c + 1] = math.sqrt(ss[c] / L)
-        out[4 * c + 2] = lo[c]
-        out[4 * c + 3] = hi[c]
+        ss = 0.0
+        for i in range(L):
+            d = ring[i, c] - mean
+            ss += d * d
+        out[4 * c] = mean
+        out[4 * c + 1] = math.sqrt(ss / L)
+        out[4 * c + 2] = lo
+        out[4 * c + 3] = hi
+    e = 0.0
+    for i in range(L):
+        e += ring[i, nw]
     out[4 * nw] = e / L if math.isfinite(e) else math.nan
     for j in range(N_LAST):
         out[4 * nw + 1 + j] = aux[AUX_LAST + j]

@@ -84,6 +84,9 @@ BIAS_SIGMA_MOTION_RANGE = (0.01, 2.0)
 REST_TH_GYR_RANGE = (0.5, 10.0)
 #: bounds [m/s²] of a per-state rest threshold th_a
 REST_TH_ACC_RANGE = (0.1, 3.0)
+#: the core's setting of each per-state field of ``VQFTogglingSettings``
+_PER_STATE = {"tau_acc": "tau_acc_states", "tau_mag": "tau_mag_states", "bias_sigma_motion": "bias_sigma_motion_states",
+              "rest_th_gyr": "rest_th_gyr_states", "rest_th_acc": "rest_th_acc_states"}
 #: most motion states a model may have (the state keeps the last probabilities to see changes)
 MAX_STATES = 8
 
@@ -159,6 +162,18 @@ class VQFTogglingSettings(VQFCoreSettings):
             raise ValueError(f"modulation_tau must be a finite time constant >= 0 s, got {self.modulation_tau}")
         if self.tau_mag == 0.0:
             raise ValueError("tau_mag must be > 0 s for the learned filter (its blend is in ln τ)")
+
+    def learning_off(self, use_mag: bool) -> bool:
+        """True when nothing learned acts in 9D (``use_mag``) or 6D: every per-state value equals the
+        core's (τ_acc, τ_mag, σ_motion, th_ω, th_a), no noise vector is subtracted (w_a = 0, and in 9D
+        w_m = 0) and, in 9D, the heading back-off is off (σ_m = 0). Then the confidence floor and
+        ``modulation_tau`` change nothing (every blend is the core's value) and the filter is the core
+        with ``core_settings`` (within rounding of exp(ln τ)): ``LearnedVQF`` and the C export run the
+        core alone."""
+        same = all(v == getattr(self, core) for core, per_state in _PER_STATE.items()
+                   for v in getattr(self, per_state))
+        mag_terms = use_mag and (self.noise_weight_mag != 0.0 or self.mag_disturbance_scale != 0.0)
+        return same and self.noise_weight_acc == 0.0 and not mag_terms
 
     @property
     def core_settings(self) -> VQFCoreSettings:

@@ -26,6 +26,7 @@ from togglecf.registry import VQF_TOGGLING
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.learn.portable import load_portable, save_portable
+from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.toggling.gains import (
     MODES,
     VQFGainSearch,
@@ -120,13 +121,17 @@ def write_model_card(out_dir, lodo: dict | None, dirs) -> Path:
 
 def _what_it_changes(mode: str, s: dict) -> str:
     """One sentence: how the learned settings of ``mode`` differ from VQF's (the core's) own."""
-    same_tau = all(v == s["tau_acc"] for v in s["tau_acc_states"])
-    backoff = s["mag_disturbance_scale"] > 0 and mode.endswith("9d")
-    if same_tau and not backoff:
+    use_mag = MODES[mode][1]
+    if settings_from_dict(VQFTogglingSettings, s).learning_off(use_mag):
         return f"{mode}: every learned value equals VQF's: this mode runs VQF itself."
-    if same_tau:
+    same_tau = all(v == s["tau_acc"] for v in s["tau_acc_states"])
+    backoff = s["mag_disturbance_scale"] > 0 and use_mag
+    if same_tau and backoff:
         return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; what the models change is the heading "
                 f"back-off (σ_m {s['mag_disturbance_scale']:g} µT, {_backoff_law(s)}).")
+    if same_tau:
+        return (f"{mode}: τ_acc stays VQF's {s['tau_acc']:g} s in every state; the models change the other settings "
+                "above.")
     return f"{mode}: τ_acc per state as above, against VQF's {s['tau_acc']:g} s."
 
 

@@ -1,0 +1,204 @@
+"""Speed of the pretrained learned VQF (``togglecf.LearnedVQF``) against the VQF core and VQF's C++,
+measured in the same run on the same trial (9D; best of --repeats, interleaved, after a warm-up).
+
+    python pipelines/bench_learned_vqf.py [--quick] [--trial 05] [--repeats 15] [--no-c] [--data DIR] [--out PATH]
+
+Rows, each as µs per sample and as a ratio to ``vqf.VQF.updateBatch`` (C++):
+
+* ``LearnedVQF``, learning off (the shipped settings, when they learn nothing: the core alone) and
+  ``vqf_core`` (numba) with the same core settings: their ratio is the goal "within 5 % of the
+  core's time";
+* the learned VQF with the shipped models in the loop (``ModelVQFTogglingFilter``), with the shipped
+  settings (the cost ``LearnedVQF`` had before it ran the core alone) and with learning on: τ_acc
+  per state ``LEARNED_TAU_ACC`` (the trees of the class probabilities walked every hop), and that
+  plus the heading back-off σ_m ``LEARNED_SIGMA_M`` µT (the η̂_m trees walked too). Goal: at most
+  1.2× VQF's C++;
+* without ``--no-c`` and with gcc: the C export (``cvqf_toggling``, float32, the harness's own
+  per-sample timing of ``tcf_vqft_update``, -O2) of the learning-on settings and of the shipped
+  ones, timed right after the Python rows (not interleaved with them: a subprocess); ratio to
+  VQF's C++ per sample of the same run;
+* where the learning-on row's time goes: the models alone (features pushed every sample, trees walked
+  every hop, no filter) and the filter step alone driven by that row's predictions (steps 1-5:
+  the followed modulation, the core).
+
+The outputs are checked too: ``LearnedVQF`` learning off against ``vqf_core`` (largest quaternion
+component difference: 0 when it runs the core alone). ``--quick``: the mini trial 24 (4000
+samples), 2 repeats; the test suite runs it for the table's shape, never its timings.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+from bench_common import add_common_args, best_interleaved, context_note, data_dir, finish, vqf_batch
+
+from togglecf.data.broad import DatasetIndex, resolve_data_dir
+from togglecf.embedded import cvqf_toggling as cv
+from togglecf.features.streaming import push_sample
+from togglecf.filters.vqf_core import VQFCoreFilter
+from togglecf.filters.vqf_toggling import VQFTogglingFilter
+from togglecf.learn.portable import save_portable
+from togglecf.toggling.gains import mode_name
+from togglecf.toggling.inloop import ModelVQFTogglingFilter, hop_predict
+from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, load_pretrained, pretrained_settings
+
+NAME = "bench_learned_vqf"
+QUICK_TRIAL = "24"
+#: τ_acc [s] per motion state of the learning-on rows (the first state's, then geometric up to the last)
+LEARNED_TAU_ACC = (1.5, 6.0)
+#: σ_m [µT] of the learning-on row with the heading back-off
+LEARNED_SIGMA_M = 10.0
+VQF = "vqf (VQF.updateBatch, C++)"
+CORE = "vqf_core (numba), the core settings"
+OFF = "LearnedVQF, shipped settings (learning off: the core alone)"
+LOOP_OFF = "models in the loop, shipped settings (all trees' work, nothing learned)"
+LOOP_TAU = "models in the loop, learning on: τ_acc per state"
+LOOP_MAG = "models in the loop, learning on: τ_acc per state + heading back-off"
+PART_MODELS = "part of the learning-on row: the models alone (features every sample, trees every hop)"
+PART_STEP = "part of the learning-on row: the filter step alone (predictions given, its own batch loop)"
+PREDS = "predictions of the learning-on row"
+C_TAU = "C export (float32), learning on: τ_acc per state"
+C_OFF = "C export (float32), shipped settings"
+
+
+def learning_on(settings, backoff: bool):
+    """``settings`` with τ_acc per state (``LEARNED_TAU_ACC``) and, with ``backoff``, σ_m ``LEARNED_SIGMA_M``."""
+    tau = tuple(np.geomspace(*LEARNED_TAU_ACC, len(settings.states)))
+    return dataclasses.replace(settings, tau_acc_states=tau,
+                               mag_disturbance_scale=LEARNED_SIGMA_M if backoff else settings.mag_disturbance_scale)
+
+
+@njit
+def models_alone(window, models, held, gyr, acc, mag):
+    """The in-loop models without a filter (``toggling.inloop.run_inloop``'s part before the step):
+    features pushed every sample, the trees walked at every window end."""
+    L, hop = window.ring.shape[0], window.hop
+    done = int(window.aux[0])
+    for i in range(gyr.shape[0]):
+        push_sample(window.ring, window.aux, window.params, window.last_src, (gyr[i, 0], gyr[i, 1], gyr[i, 2]),
+                    (acc[i, 0], acc[i, 1], acc[i, 2]), (mag[i, 0], mag[i, 1], mag[i, 2]))
+        k = done + i + 1
+        if k >= L and (k - L) % hop == 0:
+            hop_predict(window, models, held)
+
+
+def part_runs(t, gyr, acc, mag, outs) -> dict:
+    """Where the time of the learning-on row goes: the models alone (``models_alone``), and the filter step
+    alone driven by the predictions the models made in that row (``VQFTogglingFilter``, given predictions)."""
+    pm = load_pretrained()
+    on = learning_on(pretrained_settings(True), False)
+    models = ModelVQFTogglingFilter(t.fs, on, models=pm.models).predictor
+    step = VQFTogglingFilter(t.fs, on)
+
+    def run_models():
+        models.reset()
+        models_alone(models.window, models.arrays, models.held, gyr, acc, mag)
+
+    def run_step():
+        step.reset()
+        step.update_batch(gyr, acc, mag, predictions=outs[PREDS])
+    return {PART_MODELS: run_models, PART_STEP: run_step}
+
+
+def python_runs(t, gyr, acc, mag) -> tuple[dict, dict]:
+    """The Python rows' callables (each from a fresh state) and the outputs they write."""
+    pm, shipped = load_pretrained(), pretrained_settings(True)
+    outs = {}
+    filters = {OFF: LearnedVQF(t.fs), CORE: VQFCoreFilter(t.fs, shipped.core_settings),
+               LOOP_OFF: ModelVQFTogglingFilter(t.fs, shipped, models=pm.models),
+               LOOP_TAU: ModelVQFTogglingFilter(t.fs, learning_on(shipped, False), models=pm.models),
+               LOOP_MAG: ModelVQFTogglingFilter(t.fs, learning_on(shipped, True), models=pm.models)}
+
+    def run(key, f):
+        def go():
+            f.reset()
+            out = f.update_batch(gyr, acc, mag)
+            outs[key] = out.quat
+            if key == LOOP_TAU:  # the prediction rows the step alone is driven by (part_runs)
+                outs[PREDS] = np.stack([out.diagnostics[k] for k in f.layout.names(f.models.class_names)], axis=1)
+        return go
+
+    return {k: run(k, f) for k, f in filters.items()}, outs
+
+
+def c_harnesses(tmp: Path, fs: float) -> dict:
+    """Row name -> compiled harness of the C export (learning on, shipped); {} without gcc."""
+    if shutil.which("gcc") is None:
+        return {}
+    pm = load_pretrained()
+    on = dataclasses.asdict(learning_on(pretrained_settings(True), False))
+    gains = {**pm.gains, mode_name("vqf_toggling", True): on}
+    on_file = save_portable(tmp / "learning_on.npz", pm.models, gains, {"note": "bench_learned_vqf"})
+    out = {}
+    for key, path in ((C_TAU, on_file), (C_OFF, PRETRAINED_FILE)):
+        d = tmp / key.split(",")[-1].strip().replace(" ", "_").replace(":", "").replace("τ", "tau")
+        cv.export_c_vqf_toggling(path, d, fs=fs, sizes=False)
+        out[key] = cv.build_vqft_harness(d)
+    return out
+
+
+def c_us(exes: dict, t, gyr, acc, mag, repeats: int) -> dict:
+    """Best per-sample time [µs] of each harness's ``tcf_vqft_update`` loop over ``repeats`` runs."""
+    best = {}
+    for _ in range(repeats):
+        for key, exe in exes.items():
+            _, diag = cv.run_vqft_harness(exe, gyr, acc, mag, diagnostics=True, fs=t.fs)
+            best[key] = min(best.get(key, np.inf), diag["ns_per_sample"] / 1e3)
+    return best
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_args(p, NAME)
+    p.add_argument("--trial", default=None, help=f"default 05; --quick {QUICK_TRIAL}")
+    p.add_argument("--repeats", type=int, default=None, help="default 15; --quick 2")
+    p.add_argument("--no-c", action="store_true", help="leave out the C export rows")
+    args = p.parse_args(argv)
+    if not PRETRAINED_FILE.is_file():
+        sys.exit(f"{PRETRAINED_FILE}: this checkout ships no pretrained model")
+    index = DatasetIndex.from_dir(resolve_data_dir(data_dir(args)))
+    t = index.load(index.select(args.trial or (QUICK_TRIAL if args.quick else "05"))[0])
+    repeats = args.repeats or (2 if args.quick else 15)
+    gyr, acc, mag = (np.ascontiguousarray(x, np.float64) for x in (t.gyr, t.acc, t.mag))
+    n = t.n_samples
+    runs, outs = python_runs(t, gyr, acc, mag)
+    runs[LOOP_TAU]()  # its predictions drive PART_STEP
+    runs = {VQF: vqf_batch(t.fs, gyr, acc, mag), **runs, **part_runs(t, gyr, acc, mag, outs)}
+    with tempfile.TemporaryDirectory() as tmp:
+        exes = {} if args.no_c else c_harnesses(Path(tmp), t.fs)
+        us = {k: 1e6 * v / n for k, v in best_interleaved(runs, repeats).items()}
+        us_c = c_us(exes, t, gyr, acc, mag, repeats) if exes else {}
+    ref = us[VQF]
+    ratios = {k: v / ref for k, v in us.items()}
+    ratios.update({k: v / ref for k, v in us_c.items()})
+    ratios["LearnedVQF / vqf_core"] = us[OFF] / us[CORE]
+    diff = float(np.abs(outs[OFF] - outs[CORE]).max())
+    rows = [{"filter": k, "us_per_sample": v, "ratio_to_vqf": ratios[k], "ratio_to_core": v / us[CORE]}
+            for k, v in us.items()]
+    rows += [{"filter": k, "us_per_sample": v, "ratio_to_vqf": ratios[k], "ratio_to_core": None}
+             for k, v in us_c.items()]
+    what = (f"Trial {t.name} ({n} samples at {t.fs:.1f} Hz), 9D, the shipped model "
+            f"({len(load_pretrained().models.forest.roots)} trees); learning on: τ_acc per state "
+            f"{LEARNED_TAU_ACC[0]:g} to {LEARNED_TAU_ACC[1]:g} s (+ σ_m {LEARNED_SIGMA_M:g} µT for the back-off row); "
+            f"best of {repeats} interleaved runs after a warm-up. LearnedVQF against vqf_core: largest quaternion "
+            f"difference {diff:.2g}. C rows: the harness's own timing of its update loop (gcc -O2, float32, "
+            "best of as many runs), right after the Python rows, against the same VQF C++ time")
+    print(what)
+    res = finish(NAME, args, rows, ["filter", "us_per_sample", "ratio_to_vqf", "ratio_to_core"],
+                 "Learned VQF speed against the VQF core and VQF", [context_note(what, args)], ratios=ratios)
+    off, loop = ratios["LearnedVQF / vqf_core"], ratios[LOOP_TAU]
+    print(f"\ngoal: LearnedVQF learning off <= 1.05x vqf_core -> {off:.3f}x ({'met' if off <= 1.05 else 'NOT met'})")
+    met = "met" if loop <= 1.2 else "NOT met"
+    print(f"goal: learned VQF with models in the loop <= 1.2x VQF -> {loop:.2f}x ({met})")
+    res.update(max_quat_diff=diff)
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -158,13 +158,13 @@ class GainSearch:
     output_tau: tuple = (0.009813, 0.00382, 0.0)  # γ 0.3, 0.6, 1 at 285.714 Hz
     bias_tau: tuple = (-1.0, 11.66, 3.498, 1.165)  # gains 0, 0.0003, 0.001, 0.003 at 285.714 Hz
     bias_gate: tuple = (0.02, 0.05)
-    mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
+    mag_disturbance_scale: tuple = (0.0, 10.0, 30.0)
     noise_weight_acc: tuple = (0.0,)
     noise_weight_mag: tuple = (0.0,)
     confidence_floor: tuple = (0.0,)
     sweeps: int = 2
     objective: str = "worst_dataset_log_ratio"
-    step_rule: str = "any_gain"
+    step_rule: str = "one_se"
 
     def __post_init__(self):
         _check_search(self, "gain-search")

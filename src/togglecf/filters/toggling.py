@@ -169,8 +169,9 @@ class TogglingCoefficients(NamedTuple):
         gamma: output blend weight per sample, from ``output_tau``.
         bias_gain: bias low-pass gain per sample at p_static = 1, from ``bias_tau``.
         static_index: index of ``static_state`` in ``states`` (its probability drives the bias).
-        bias_gate, mag_disturbance_scale, mag_rejection_factor, noise_weight_acc, noise_weight_mag,
-            confidence_floor: the ``TogglingSettings`` of the same names.
+        bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag, confidence_floor:
+            the ``TogglingSettings`` of the same names.
+        mag_rejection_factor: f_reject of step 4 (``TogglingSettings.mag_rejection_factor``).
         alpha_fallback_acc, alpha_fallback_mag: the cautious gains per sample of step 4's
             fallback: the smallest of ``alpha_acc``/``alpha_mag``.
     """

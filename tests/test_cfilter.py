@@ -76,9 +76,10 @@ def _gains(class_names, static_state, use_mag):
     # (0.0005, 0.0002, 0.0001, 0.0003, 0.0002, 0.0001); γ 0.6 / 1, bias gain 0.001 / 0.003
     base_a = (1.748, 6.998, 11.66, 35.0, 17.5, 8.748)
     base_m = (6.998, 17.5, 35.0, 11.66, 17.5, 35.0)
-    if use_mag:  # exercises every step: η_a trees dropped (weight 0), η_m half-weighted, σ_m on, γ < 1
+    if use_mag:  # exercises every step: η_a trees dropped (weight 0), η_m half-weighted, σ_m on and bounded
+        # (the back-off at most 1.5: capped for |η̂_m| above 7.1 µT), γ < 1
         extra = dict(output_tau=0.00382, bias_tau=3.498, bias_gate=0.05, mag_disturbance_scale=10.0,
-                     noise_weight_acc=0.0, noise_weight_mag=0.5)
+                     mag_rejection_factor=1.5, noise_weight_acc=0.0, noise_weight_mag=0.5)
     else:
         # and a confidence floor: low-confidence windows run the core (12.5 s, no bias, no noise removal)
         extra = dict(output_tau=0.0, bias_tau=1.165, bias_gate=0.05, mag_disturbance_scale=0.0, noise_weight_acc=0.5,

@@ -92,6 +92,7 @@ def _filter_defines(settings, static_index: int, fs: float) -> str:
 #define TCF_BIAS_GATE {c_float(s.bias_gate)}       /* rad/s */
 #define TCF_STATIC_INDEX {static_index}     /* class in which the gyro bias is learned: {s.static_state} */
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(s.mag_disturbance_scale)}   /* uT, 0 = off */
+#define TCF_MAG_REJECTION_FACTOR {c_float(s.mag_rejection_factor)}   /* largest divisor of the mag gain by the back-off */
 #define TCF_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}
 #define TCF_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}
 /* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the cautious

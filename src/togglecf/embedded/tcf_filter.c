@@ -185,8 +185,11 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
   eta_ok = tcf_remove_noise(&pred, acc, mag, TCF_NOISE_WEIGHT_ACC, TCF_NOISE_WEIGHT_MAG, learned, a_d, m_d);  /* step 3 */
   acc_ok = tcf_vec_ok(a_d);
   mag_ok = TCF_USE_MAG && tcf_vec_ok(m_d);
-  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok)  /* step 4: trust the magnetometer less when a disturbance is predicted */
-    alpha_m = tcf_back_off(alpha_m, tcf_predicted_disturbance(&pred, TCF_MAG_DISTURBANCE_SCALE));
+  if (TCF_MAG_DISTURBANCE_SCALE > 0.0f && eta_ok) {  /* step 4: trust the magnetometer less when a disturbance is
+                                                       * predicted, by at most the rejection factor */
+    float e = tcf_predicted_disturbance(&pred, TCF_MAG_DISTURBANCE_SCALE);
+    alpha_m = tcf_back_off(alpha_m, fminf(e, TCF_MAG_REJECTION_FACTOR - 1.0f));
+  }
   p_static = learned ? pred.probabilities[TCF_STATIC_INDEX] : 0.0f;
   f->alpha_acc = 0.0f;
   f->alpha_mag = 0.0f;

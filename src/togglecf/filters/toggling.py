@@ -11,7 +11,10 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    regressor that does not generalise to a disturbance can be switched down)
 4. gain toggling            α_a = Σ_s p_s α_a[s],  α_m = Σ_s p_s α_m[s]   (α a function of
    the class probabilities; a hard toggle when the probabilities are one-hot); the
-   magnetometer gain also falls with the predicted disturbance: α_m / (1 + (|η̂_m| / σ_m)²)
+   magnetometer gain also falls with the predicted disturbance: α_m / (1 + min((|η̂_m| / σ_m)², f_reject − 1)),
+   bounded by the rejection factor f_reject (as the VQF core's rejection and the learned VQF's back-off: the
+   heading gain is never below α_m / f_reject, so a disturbance predicted on a sensor the models never saw
+   slows the heading correction by at most that factor instead of switching it off)
    **Fallback**: with no prediction (NaN probabilities: before the first full window,
    or a window outside the models' training range, ``learn.ranges``) or a prediction whose
    confidence c = max_s p_s / Σ_s p_s is below ``confidence_floor`` c₀, the models are not
@@ -101,6 +104,10 @@ class TogglingSettings(FilterSettings):
             < 0 disables the bias estimate).
         bias_gate: largest |ω − b| [rad/s] still taken as bias (rejects slow motion at "rest").
         mag_disturbance_scale: σ_m [µT] of step 4; 0 turns the disturbance scaling off.
+        mag_rejection_factor: f_reject ≥ 1 (dimensionless) of step 4: the largest divisor of the
+            magnetometer gain by the back-off (the heading gain stays at least α_m / f_reject); the
+            default 2 is the VQF core's rejection factor; 1 turns the back-off off. Finite (the
+            C export writes it as a float32 constant).
         noise_weight_acc, noise_weight_mag: w_a, w_m of step 3, in [0, 1].
         confidence_floor: c₀ in [0, 1) of step 4's fallback: a prediction whose top class
             probability (of their sum) is below it is not used; 0 (default): every valid one is.
@@ -119,6 +126,7 @@ class TogglingSettings(FilterSettings):
     bias_tau: float = 1.748
     bias_gate: float = 0.05
     mag_disturbance_scale: float = 0.0
+    mag_rejection_factor: float = 2.0
     noise_weight_acc: float = 1.0
     noise_weight_mag: float = 1.0
     confidence_floor: float = 0.0
@@ -142,6 +150,8 @@ class TogglingSettings(FilterSettings):
             raise ValueError("noise weights must be in [0, 1]")
         if self.mag_disturbance_scale < 0.0:
             raise ValueError(f"mag_disturbance_scale must be >= 0 µT, got {self.mag_disturbance_scale}")
+        if not 1.0 <= self.mag_rejection_factor < math.inf:
+            raise ValueError(f"mag_rejection_factor must be finite and >= 1, got {self.mag_rejection_factor}")
         if not self.bias_gate >= 0.0:
             raise ValueError(f"bias_gate must be >= 0 rad/s, got {self.bias_gate}")
         if not 0.0 <= self.confidence_floor < 1.0:
@@ -161,6 +171,7 @@ class TogglingCoefficients(NamedTuple):
         static_index: index of ``static_state`` in ``states`` (its probability drives the bias).
         bias_gate, mag_disturbance_scale, noise_weight_acc, noise_weight_mag, confidence_floor:
             the ``TogglingSettings`` of the same names.
+        mag_rejection_factor: f_reject of step 4 (``TogglingSettings.mag_rejection_factor``).
         alpha_fallback_acc, alpha_fallback_mag: the cautious gains per sample of step 4's
             fallback: the smallest of ``alpha_acc``/``alpha_mag``.
     """
@@ -175,6 +186,7 @@ class TogglingCoefficients(NamedTuple):
     static_index: int
     bias_gate: float
     mag_disturbance_scale: float
+    mag_rejection_factor: float
     noise_weight_acc: float
     noise_weight_mag: float
     confidence_floor: float
@@ -214,8 +226,10 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
                                     learned)  # step 3
     acc_ok = vector_ok(a_d)
     mag_ok = use_mag and vector_ok(m_d)
-    if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted
-        alpha_m = back_off(alpha_m, predicted_disturbance(layout, pred, mag_scale))
+    if mag_scale > 0.0 and eta_ok:  # step 4: trust the magnetometer less when a disturbance is predicted,
+        # by at most the rejection factor
+        e = min(predicted_disturbance(layout, pred, mag_scale), params.mag_rejection_factor - 1.0)
+        alpha_m = back_off(alpha_m, e)
     p_static = pred[static_idx] if learned else 0.0
     diag[0] = 0.0
     diag[1] = 0.0
@@ -292,6 +306,7 @@ class TogglingFilter(PredictionDrivenFilter):
         return {"layout": PredictionLayout.of(len(s.states)), "alpha_acc": alpha_acc, "alpha_mag": alpha_mag, "gamma": gain(s.output_tau, ts),
                 "bias_gain": gain(s.bias_tau, ts), "static_index": s.states.index(s.static_state),
                 "bias_gate": s.bias_gate, "mag_disturbance_scale": s.mag_disturbance_scale,
+                "mag_rejection_factor": s.mag_rejection_factor,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
                 "confidence_floor": s.confidence_floor, "alpha_fallback_acc": float(alpha_acc.min()),
                 "alpha_fallback_mag": float(alpha_mag.min())}

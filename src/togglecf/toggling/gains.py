@@ -17,11 +17,11 @@ heading offset removed):
 * ``"mean_rmse"``: the mean total RMSE over all trials (the trials with the largest errors weigh most).
 
 When a step is kept (``STEP_RULES``): ``"any_gain"`` keeps a candidate that lowers the objective at
-all (the toggling CF's search, which starts from moderate gains, not from a validated filter);
-``"one_se"`` (the learned VQF's, whose start is the VQF core) keeps it only when it lowers the
-objective by more than one standard error of its per-trial change (Breiman's one-standard-error
-rule, ``step_margin``): a learned value leaves the core only for a gain the training trials show
-beyond their own trial-to-trial scatter, not for a few tenths of a percent that need not travel.
+all; ``"one_se"`` (the default of both searches: the learned VQF's, whose start is the VQF core, and
+the toggling CF's, whose start is ``GainSearch.start``) keeps it only when it lowers the objective by
+more than one standard error of its per-trial change (Breiman's one-standard-error rule,
+``step_margin``): a learned value leaves the start only for a gain the training trials show beyond
+their own trial-to-trial scatter, not for a few tenths of a percent that need not travel.
 """
 from __future__ import annotations
 
@@ -144,27 +144,31 @@ class GainSearch:
         output_tau: grid of the output blend's time constant [s] (0: vectors only).
         bias_tau: grid of the rest-bias low-pass time constant [s] (< 0: no bias estimate).
         bias_gate: grid of the largest |ω − b| [rad/s] taken as bias.
-        mag_disturbance_scale: grid of σ_m (0 = off).
+        mag_disturbance_scale: grid of σ_m [µT] (0 = off); none below 10 µT by default, as the learned
+            VQF's: a smaller σ_m backs off on a consumer magnetometer's calibration residuals (a
+            few µT), a quirk of the sensor rather than a disturbance. The back-off itself is bounded
+            by ``TogglingSettings.mag_rejection_factor`` (not searched).
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise (default 0
             only: a noise vector learned on one sensor does not belong in another's signal).
         confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
         sweeps: passes over all parameters.
         objective: what the descent minimises (``OBJECTIVES``, module docstring).
-        step_rule: when a step is kept (``STEP_RULES``, module docstring): any gain, as its start is
-            no validated filter.
+        step_rule: when a step is kept (``STEP_RULES``, module docstring): by default one standard
+            error (``"one_se"``), as the learned VQF's search: a value learned on the training
+            datasets leaves the start only for a gain beyond their trial-to-trial scatter.
     """
 
     tau: tuple = _TAU_GRID
     output_tau: tuple = (0.009813, 0.00382, 0.0)  # γ 0.3, 0.6, 1 at 285.714 Hz
     bias_tau: tuple = (-1.0, 11.66, 3.498, 1.165)  # gains 0, 0.0003, 0.001, 0.003 at 285.714 Hz
     bias_gate: tuple = (0.02, 0.05)
-    mag_disturbance_scale: tuple = (0.0, 3.0, 10.0, 30.0)
+    mag_disturbance_scale: tuple = (0.0, 10.0, 30.0)
     noise_weight_acc: tuple = (0.0,)
     noise_weight_mag: tuple = (0.0,)
     confidence_floor: tuple = (0.0,)
     sweeps: int = 2
     objective: str = "worst_dataset_log_ratio"
-    step_rule: str = "any_gain"
+    step_rule: str = "one_se"
 
     def __post_init__(self):
         _check_search(self, "gain-search")

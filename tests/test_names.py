@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from togglecf.embedded import cvqf
-from togglecf.filters.base import _COMMON_STATE_FIELDS
+from togglecf.filters.base import COMMON_STATE_FIELDS
 from togglecf.filters.toggling import TogglingCoefficients, TogglingFilter
 from togglecf.filters.vqf_core import CoreModulation, LowPass, VQFCoreCoefficients, VQFCoreFilter, VQFCoreSettings
 from togglecf.filters.vqf_toggling import VQFTogglingCoefficients, VQFTogglingFilter
@@ -177,7 +177,7 @@ def _flat_groups(names) -> list[str]:
 
 def test_vqf_core_state(structs):
     dtype = VQFCoreFilter.state_dtype
-    assert [n for n, _ in _COMMON_STATE_FIELDS] == list(dtype.names[:2])
+    assert [n for n, _ in COMMON_STATE_FIELDS] == list(dtype.names[:2])
     c = structs["tcf_vqf_t"]
     assert not name_drift("tcf_vqf_t / VQFCoreFilter state", _state_names_as_c(dtype), c,
                           c_only=CORE_STATE_C_ONLY)
@@ -243,7 +243,7 @@ def test_learned_vqf_coefficients(structs):
 # ------------------------------------------------------------------------------------ the toggling CF
 
 def test_toggling_cf_state(structs):
-    python = [n for n, _ in _COMMON_STATE_FIELDS] + _flat_groups(TogglingFilter.state_names)
+    python = [n for n, _ in COMMON_STATE_FIELDS] + _flat_groups(TogglingFilter.state_names)
     c = [n for n in structs["tcf_filter_t"] if n not in CF_STATE_DIAGNOSTICS]
     assert not name_drift("tcf_filter_t / TogglingFilter state", python, c, c_only=CF_STATE_C_ONLY)
     assert set(CF_STATE_DIAGNOSTICS) <= set(TogglingFilter.diagnostic_names)

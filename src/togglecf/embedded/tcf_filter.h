@@ -60,7 +60,7 @@ typedef struct tcf_filter_coeffs {
   float bias_gain;                    /* gyro bias learning, 1 - exp(-Ts / bias_tau) (0: off) */
 } tcf_filter_coeffs_t;
 
-/* The state: the names of TogglingFilter's state (filters.base._COMMON_STATE_FIELDS, then bias, a_pred,
+/* The state: the names of TogglingFilter's state (filters.base.COMMON_STATE_FIELDS, then bias, a_pred,
    m_pred of filters.toggling) and of its diagnostics; tests/test_names.py compares them. */
 typedef struct tcf_filter {
   tcf_filter_coeffs_t c;  /* per-sample constants at the init rate */

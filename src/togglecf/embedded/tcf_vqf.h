@@ -104,7 +104,7 @@ typedef struct tcf_vqf_lp_head {
   uint32_t ready;  /* 0 while averaging, 1 after tau */
 } tcf_vqf_lp_head_t;
 
-/* The state: the names of VQFCoreFilter's state record (filters.base._COMMON_STATE_FIELDS and
+/* The state: the names of VQFCoreFilter's state record (filters.base.COMMON_STATE_FIELDS and
    vqf_core.CORE_STATE_FIELDS; tests/test_names.py compares them). A low-pass bank B of the Python
    record (n, ready, s) is B_head {n, ready} and the channels B = B.s here, the heads first. */
 typedef struct tcf_vqf {

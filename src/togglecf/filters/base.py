@@ -58,6 +58,7 @@ from togglecf.core.quaternion import (
 )
 
 __all__ = [
+    "COMMON_STATE_FIELDS",
     "COMMON_COEFFICIENTS",
     "CommonCoefficients",
     "FilterOutput",
@@ -144,8 +145,9 @@ def make_coefficients(record: type, **values):
     return record(**out)
 
 
-#: the common part of every state record (``state[0:5]``)
-_COMMON_STATE_FIELDS = (("quat", ("quat_w", "quat_x", "quat_y", "quat_z")), ("initialized", "initialized"))
+#: the common part of every state record (``state[0:5]``): (field, names) pairs, the first fields of every
+#: filter's state and of its C twin's struct (``tests/test_names.py`` compares them)
+COMMON_STATE_FIELDS = (("quat", ("quat_w", "quat_x", "quat_y", "quat_z")), ("initialized", "initialized"))
 
 
 def _record_layout(fields) -> tuple[list, list]:
@@ -172,7 +174,7 @@ def state_record(fields) -> tuple[np.dtype, tuple[str, ...]]:
     of tuples) or a list of fields (a nested record). ``dtype`` (float64 throughout, packed in
     field order) lays out the whole flat state, so a kernel reads ``state.view(dtype)[0]``;
     ``state_names`` are the flat names of ``state[5:]`` in the same order."""
-    dtype, names = _record_layout(_COMMON_STATE_FIELDS + tuple(fields))
+    dtype, names = _record_layout(COMMON_STATE_FIELDS + tuple(fields))
     dtype = np.dtype(dtype)
     return dtype, tuple(names[N_COMMON_STATE:])
 

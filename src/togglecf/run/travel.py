@@ -39,10 +39,10 @@ import numpy as np
 from numba import njit
 
 from togglecf.core import quaternion as quat
-from togglecf.core.quaternion import from_rotvec_scalar, multiply_scalar, normalize_scalar
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.provenance import generated_line
 from togglecf.data.broad import DatasetIndex
+from togglecf.filters.base import propagate_gyro
 from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings
 from togglecf.learn.folds import trial_folds
 from togglecf.metrics.broad import trial_errors
@@ -132,12 +132,18 @@ def halves(movement) -> tuple[np.ndarray, np.ndarray]:
     return movement & before, movement & ~before
 
 
+def _dip_deg(acc, mag, acc_norm, mag_norm) -> np.ndarray:
+    """arcsin(a·m / (|a| |m|)) [deg] ``(N,)``: 90° minus the angle between the specific force and the
+    field, the field's dip up to sign (``(N, 3)`` vectors and their norms ``(N,)``)."""
+    cos = np.sum(acc * mag, axis=1) / np.maximum(acc_norm * mag_norm, 1e-12)
+    return np.degrees(np.arcsin(np.clip(cos, -1.0, 1.0)))
+
+
 def trial_statistics(trial, rest, mag_dist, first) -> dict:
     """``TRIAL_STATISTICS`` of ``trial`` over the samples ``first`` ``(N,)`` bool; ``rest``, ``mag_dist``:
     VQF's flags per sample at its defaults ``(N,)``."""
     an, mn = np.linalg.norm(trial.acc, axis=1)[first], np.linalg.norm(trial.mag, axis=1)[first]
-    dip = np.degrees(np.arcsin(np.clip(np.sum(trial.acc[first] * trial.mag[first], axis=1)
-                                       / np.maximum(an * mn, 1e-12), -1.0, 1.0)))
+    dip = _dip_deg(trial.acc[first], trial.mag[first], an, mn)
     a0, m0 = np.nanmedian(an), np.nanmedian(mn)
     at_rest = np.asarray(rest, bool)[first]
     noise = float(np.nanstd(an[at_rest])) if at_rest.sum() >= _MIN_REST_S * trial.fs else math.nan
@@ -153,18 +159,14 @@ def trial_statistics(trial, rest, mag_dist, first) -> dict:
 @njit(cache=True)
 def _gyro_chain(gyr, dt):
     """The gyroscope's orientation increments chained from the first sample ``(N + 1, 4)``: row k is
-    the body rotation from sample 0 to sample k (``G_{k+1} = G_k ⊗ exp(ω_k dt / 2)``)."""
-    n = gyr.shape[0]
-    g = np.empty((n + 1, 4))
-    w, x, y, z = 1.0, 0.0, 0.0, 0.0
-    g[0] = (w, x, y, z)
-    for k in range(n):
-        wx, wy, wz = gyr[k, 0], gyr[k, 1], gyr[k, 2]
-        if not (math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz)):
-            wx = wy = wz = 0.0  # a missing sample: no rotation (the score's samples skip no time)
-        d = from_rotvec_scalar(wx * dt, wy * dt, wz * dt)
-        w, x, y, z = normalize_scalar(multiply_scalar((w, x, y, z), d))
-        g[k + 1] = (w, x, y, z)
+    the body rotation from sample 0 to sample k (``G_{k+1} = G_k ⊗ exp(ω_k dt / 2)``, the filters'
+    ``propagate_gyro``: a missing or saturated sample adds no rotation)."""
+    g = np.empty((gyr.shape[0] + 1, 4))
+    q = (1.0, 0.0, 0.0, 0.0)
+    g[0] = q
+    for k in range(gyr.shape[0]):
+        q, _ = propagate_gyro(q, gyr[k], dt, dt)
+        g[k + 1] = q
     return g
 
 
@@ -190,7 +192,7 @@ def prediction_scores(q_est, trial, steps: tuple[int, np.ndarray], mask) -> tupl
     q_pred = quat.multiply(q_est[i - h], step)
     acc, mag = trial.acc[i], trial.mag[i]
     an, mn = np.linalg.norm(acc, axis=1), np.linalg.norm(mag, axis=1)
-    dip = np.degrees(np.arcsin(np.clip(np.sum(acc * mag, 1) / np.maximum(an * mn, 1e-12), -1.0, 1.0)))
+    dip = _dip_deg(acc, mag, an, mn)
     keep = np.asarray(mask, bool)[i] & np.isfinite(q_pred[:, 0])
     clean_acc = keep & (np.abs(an / np.nanmedian(an) - 1.0) < _CLEAN_ACC)
     clean_mag = (keep & (np.abs(mn / np.nanmedian(mn) - 1.0) < _CLEAN_MAG)
@@ -275,10 +277,10 @@ def _split_choice(rule: dict, record: dict, default: int) -> int:
     return default if not math.isfinite(v) else rule["low"] if v <= rule["threshold"] else rule["high"]
 
 
-def _own_choice(record: dict, key: str) -> int:
-    """The pair best on one of the trial's own columns (NaN-safe: VQF's defaults when all are NaN)."""
+def _own_choice(record: dict, key: str, default: int) -> int:
+    """The pair best on one of the trial's own columns (``default`` when every value is NaN)."""
     values = np.asarray(record[key], np.float64)
-    return int(np.nanargmin(values)) if np.isfinite(values).any() else -1
+    return int(np.nanargmin(values)) if np.isfinite(values).any() else default
 
 
 def _self_tuned_choice(record: dict, default: int) -> int:
@@ -306,10 +308,8 @@ def choose_pairs(records: dict, train, test, pairs) -> tuple[dict, dict]:
     for n in test:
         r = records[n]
         rows.setdefault("self_tuned", {})[n] = _self_tuned_choice(r, default)
-        own = _own_choice(r, "first")
-        rows.setdefault("first_half_reference", {})[n] = default if own < 0 else own
-        best = _own_choice(r, "second")
-        rows.setdefault("trial_oracle", {})[n] = default if best < 0 else best
+        rows.setdefault("first_half_reference", {})[n] = _own_choice(r, "first", default)
+        rows.setdefault("trial_oracle", {})[n] = _own_choice(r, "second", default)
     return rows, rules
 
 
@@ -354,10 +354,6 @@ def within_dataset(records: dict, pairs, folds: int) -> dict:
     return out
 
 
-def _task(root: str, name: str, settings: TravelSettings):
-    return trial_record(root, name, settings)
-
-
 def travel(dirs, settings: TravelSettings) -> dict:
     """Every trial of every dataset directory of ``dirs`` (BROAD's layout) on the grid (``trial_record``),
     then ``leave_dataset_out`` and ``within_dataset``. Returns ``{"pairs", "records", "groups",
@@ -369,7 +365,7 @@ def travel(dirs, settings: TravelSettings) -> dict:
         tasks += [(f"{index.root.name}/{n}", (str(index.root), n, settings)) for n in index.select(None)]
     log.info(f"travel: {len(tasks)} trials x {len(settings.pairs)} pairs of VQF's time constants")
     records = {}
-    for outcome in LocalBackend(settings.jobs).run(_task, tasks, desc="trials", unit="trial"):
+    for outcome in LocalBackend(settings.jobs).run(trial_record, tasks, desc="trials", unit="trial"):
         if outcome.error is not None:
             raise outcome.error
         records[outcome.key] = outcome.value

@@ -160,6 +160,7 @@ tau = [17.5, 1.748]
 output_tau = [0.0]
 bias_tau = [-1.0, 3.498]
 mag_disturbance_scale = [0.0]
+mag_rate_limit = [0.0, 0.02]
 sweeps = 1
 [gains.vqf]
 tau_acc = [1.0, 3.0]

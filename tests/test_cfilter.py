@@ -77,9 +77,9 @@ def _gains(class_names, static_state, use_mag):
     base_a = (1.748, 6.998, 11.66, 35.0, 17.5, 8.748)
     base_m = (6.998, 17.5, 35.0, 11.66, 17.5, 35.0)
     if use_mag:  # exercises every step: η_a trees dropped (weight 0), η_m half-weighted, σ_m on and bounded
-        # (the back-off at most 1.5: capped for |η̂_m| above 7.1 µT), γ < 1
+        # (the back-off at most 1.5: capped for |η̂_m| above 7.1 µT), γ < 1, the heading correction's rate bound
         extra = dict(output_tau=0.00382, bias_tau=3.498, bias_gate=0.05, mag_disturbance_scale=10.0,
-                     mag_rejection_factor=1.5, noise_weight_acc=0.0, noise_weight_mag=0.5)
+                     mag_rejection_factor=1.5, noise_weight_acc=0.0, noise_weight_mag=0.5, mag_rate_limit=0.02)
     else:
         # and a confidence floor: low-confidence windows run the core (12.5 s, no bias, no noise removal)
         extra = dict(output_tau=0.0, bias_tau=1.165, bias_gate=0.05, mag_disturbance_scale=0.0, noise_weight_acc=0.5,
@@ -342,7 +342,7 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
     for mode, (rep, _) in exported.items():
         L, S = rep["window_max"], rep["n_classes"]  # the ring is sized for TCF_MAX_FS
         assert rep["state_bytes"] > 0 and L > rep["window"] and rep["max_fs"] == 400.0
-        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (65 + 12 * L + 3 * S)
+        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (66 + 12 * L + 3 * S)
         assert rep["n_trees"] < len(full.roots)  # unused outputs' trees are not exported
         names = {Path(f).name for f in rep["files"]}
         assert {"tcf_filter.h", "tcf_filter.c", "tcf_config.h", "tcf_forest.h", "tcf_forest.c", "tcf_harness.c",

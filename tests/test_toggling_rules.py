@@ -8,7 +8,7 @@ import pytest
 from togglecf import simulate as sim
 from togglecf.core import quaternion as quat
 from togglecf.filters.timeconst import gain
-from togglecf.filters.toggling import TogglingFilter, TogglingSettings
+from togglecf.filters.toggling import TogglingFilter, TogglingSettings, rate_bounded_gain
 from togglecf.run.config import GAIN_KEYS, load_config
 from togglecf.toggling.gains import GainSearch, VQFGainSearch
 
@@ -75,3 +75,81 @@ def test_the_rejection_factor_is_checked():
     for bad in (0.5, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="mag_rejection_factor"):
             TogglingSettings(mag_rejection_factor=bad)
+
+
+# ---------------------------------------------------------------- the heading correction's rate bound
+
+def _turn(v, w):
+    """Angle [rad] between vectors v and w."""
+    return float(np.arctan2(np.linalg.norm(np.cross(v, w)), np.dot(v, w)))
+
+
+def test_the_rate_bound_turns_the_vector_by_at_most_its_angle_and_is_exact_at_it():
+    """rate_bounded_gain on random vectors: the step (1 − α') v + α' m turns v by at most θ_max, by
+    exactly θ_max where the bound lowers α (α' solves tan θ = α |v × m| / (v · v_new)), and leaves α
+    unchanged where the step is smaller; 1e-12: float64 rounding of a few products."""
+    rng = np.random.default_rng(0)
+    theta = 0.05 * 0.01  # 0.05 rad/s at 100 Hz
+    bounded = 0
+    for _ in range(2000):
+        v = rng.normal(size=3) * 40.0
+        m = rng.normal(size=3) * rng.uniform(5.0, 80.0)
+        alpha = 10.0 ** rng.uniform(-6.0, -1.3)
+        a = rate_bounded_gain(alpha, v, m, np.tan(theta))
+        turned = _turn(v, (1.0 - a) * v + a * m)
+        assert 0.0 < a <= alpha
+        assert turned <= theta * (1.0 + 1e-12)
+        if a < alpha:
+            bounded += 1
+            assert turned == pytest.approx(theta, rel=1e-12)
+        else:
+            assert _turn(v, (1.0 - alpha) * v + alpha * m) <= theta * (1.0 + 1e-12)
+    assert 100 < bounded < 1900  # both branches were exercised
+    assert rate_bounded_gain(0.3, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 0.0) == 0.3  # 0: no bound
+
+
+def _turned_field_run(mag_rate_limit, duration=30.0):
+    """A sensor at rest whose field turns by 90° in azimuth at 1 s (a disturbance that stays), sample by
+    sample: the output's rotation from the truth [rad] (the heading error; no tilt error) and the angle
+    [rad] by which each sample's step turned m_pred."""
+    n = int(duration * FS)
+    q = np.tile(quat.IDENTITY, (n, 1))
+    turned = sim.EARTH_MAG_ENU[[1, 0, 2]] * np.array([-1.0, 1.0, 1.0])  # azimuth +90°: north -> west
+    dist = np.zeros((n, 3))
+    dist[int(FS):] = turned - sim.EARTH_MAG_ENU
+    trial = sim.imu_from_orientation(q, FS, mag_disturbance_earth=dist)
+    s = TogglingSettings(tau_acc=(3.498, 3.498), tau_mag=(3.498, 3.498), bias_tau=-1.0, noise_weight_acc=0.0,
+                         noise_weight_mag=0.0, mag_rate_limit=mag_rate_limit)
+    f = TogglingFilter(FS, settings=s)
+    out, step = np.empty((n, 4)), np.zeros(n)
+    m_before = None
+    for i in range(n):
+        out[i] = f.update(trial.gyr[i], trial.acc[i], trial.mag[i])
+        d = f.state_dict()
+        m_pred = np.array([d["m_pred_x"], d["m_pred_y"], d["m_pred_z"]])
+        if m_before is not None:
+            step[i] = _turn(m_before, m_pred)
+        m_before = m_pred
+    return quat.angle_between(out, q), step
+
+
+def test_a_disturbance_turns_the_heading_no_faster_than_the_bound():
+    """With ω_m = 0.05 rad/s no step turns m_pred by more than ω_m Ts (the sensor is at rest: only the
+    correction turns it; 1e-9 for rounding), the heading follows the turned field far more slowly than
+    with τ_mag 3.5 s alone, and in the end it still gets there."""
+    limit = 0.05
+    bounded, step = _turned_field_run(limit)
+    free, free_step = _turned_field_run(0.0)
+    assert step.max() <= limit / FS * (1.0 + 1e-9)
+    assert free_step.max() > 2.0 * limit / FS  # without the bound the first steps are about 3x larger
+    assert free[int(3 * FS)] > 0.35 * np.pi / 2  # 2 s of τ 3.5 s: about 43 % of the 90°
+    assert bounded[int(3 * FS)] < 0.15 * np.pi / 2
+    assert bounded[-1] == pytest.approx(np.pi / 2, abs=np.radians(1.0))
+
+
+def test_the_rate_bound_is_checked_and_off_by_default():
+    assert TogglingSettings().mag_rate_limit == 0.0
+    assert GainSearch().start(("rest", "dynamic"), "rest").mag_rate_limit == 0.0  # the descent starts without it
+    for bad in (-0.1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="mag_rate_limit"):
+            TogglingSettings(mag_rate_limit=bad)

@@ -64,13 +64,13 @@ C_FILTER = framework.CSourceSet(
 
 def state_bytes_formula(window_max: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (65 + 12 L_max + 3 S)`` (65 = the per-sample constants of the init rate Ts, fallback gains
-    2, γ, bias gain 5; quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features' per-sample
+    ``4 · (66 + 12 L_max + 3 S)`` (66 = the per-sample constants of the init rate Ts, fallback gains
+    2, γ, bias gain, tan of the heading's largest turn 6; quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features' per-sample
     constants 6, EMA references as hi + lo 10, candidate field as hi + lo 4 and its count 1,
     previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3; 12 L_max the ring,
     ``TCF_WINDOW_MAX`` rows for ``TCF_MAX_FS``; 3 S the per-state gains α_acc, α_mag and the class
     probabilities)."""
-    return 4 * (65 + 12 * int(window_max) + 3 * int(n_classes))
+    return 4 * (66 + 12 * int(window_max) + 3 * int(n_classes))
 
 
 def _filter_defines(settings, static_index: int, fs: float) -> str:
@@ -93,6 +93,7 @@ def _filter_defines(settings, static_index: int, fs: float) -> str:
 #define TCF_STATIC_INDEX {static_index}     /* class in which the gyro bias is learned: {s.static_state} */
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(s.mag_disturbance_scale)}   /* uT, 0 = off */
 #define TCF_MAG_REJECTION_FACTOR {c_float(s.mag_rejection_factor)}   /* largest divisor of the mag gain by the back-off */
+#define TCF_MAG_RATE_LIMIT {c_float(s.mag_rate_limit)}   /* rad/s, fastest turn of m_pred by the heading correction (0: none) */
 #define TCF_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}
 #define TCF_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}
 /* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the cautious
@@ -131,10 +132,11 @@ def export_c_filter(model_dir, out_dir, fs=None, use_mag: bool = True, riscv: bo
               "per_sample_gains": {"alpha_acc": p.alpha_acc.tolist(), "alpha_mag": p.alpha_mag.tolist(),
                                    "gamma": float(p.gamma), "bias_gain": float(p.bias_gain),
                                    "alpha_fallback_acc": float(p.alpha_fallback_acc),
-                                   "alpha_fallback_mag": float(p.alpha_fallback_mag)},
+                                   "alpha_fallback_mag": float(p.alpha_fallback_mag),
+                                   "tan_mag_step": float(p.tan_mag_step)},
               "schema_hash": ex.schema_hash, "model_hash": ex.model_hash, "gains_sha256": ex.gains_hash,
               "fallback": learned.fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (65 + 12 * window_max + 3 * n_classes)",
+              "state_bytes_formula": "4 * (66 + 12 * window_max + 3 * n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = framework.probe_sizes(out_dir, "tcf_filter.h", ["sizeof(tcf_filter_t)", "TCF_STATE_BYTES"])
     if documented != report["state_bytes_documented"]:

@@ -142,6 +142,25 @@ static void tcf_coefficients(float ts, tcf_filter_coeffs_t *c) {
   }
   c->gamma = tcf_gain(TCF_OUTPUT_TAU, ts);
   c->bias_gain = tcf_gain(TCF_BIAS_TAU, ts);
+  c->tan_mag_step = tanf(TCF_MAG_RATE_LIMIT * ts);
+}
+
+/* Step 5's gain alpha, lowered where the vector CF step v_new = (1 - alpha) v + alpha m would turn v by
+   more than the angle whose tangent is tan_step (0: no bound; rate_bounded_gain): tan theta =
+   alpha |v x m| / (v . v_new), solved for alpha at the bound. */
+static float tcf_rate_bounded_gain(float alpha, const float v[3], const float m[3], float tan_step) {
+  float cx, cy, cz, cross, vv, vm, along, denominator;
+  if (tan_step <= 0.0f || alpha <= 0.0f) return alpha;
+  cx = v[1] * m[2] - v[2] * m[1];
+  cy = v[2] * m[0] - v[0] * m[2];
+  cz = v[0] * m[1] - v[1] * m[0];
+  cross = sqrtf(cx * cx + cy * cy + cz * cz);
+  vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  vm = v[0] * m[0] + v[1] * m[1] + v[2] * m[2];
+  along = (1.0f - alpha) * vv + alpha * vm;
+  denominator = cross + tan_step * (vv - vm);
+  if (alpha * cross <= tan_step * along || denominator <= 0.0f) return alpha;
+  return tan_step * vv / denominator;
 }
 
 /* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
@@ -229,7 +248,8 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     for (j = 0; j < 3; ++j) f->a_pred[j] = (1.0f - alpha_a) * f->a_pred[j] + alpha_a * a_d[j];
     f->alpha_acc = alpha_a;
   }
-  if (mag_ok) {
+  if (mag_ok) {  /* the heading correction turns m_pred at most TCF_MAG_RATE_LIMIT */
+    alpha_m = tcf_rate_bounded_gain(alpha_m, f->m_pred, m_d, f->c.tan_mag_step);
     for (j = 0; j < 3; ++j) f->m_pred[j] = (1.0f - alpha_m) * f->m_pred[j] + alpha_m * m_d[j];
     f->alpha_mag = alpha_m;
   }

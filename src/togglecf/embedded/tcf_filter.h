@@ -58,6 +58,7 @@ typedef struct tcf_filter_coeffs {
   float alpha_fallback_mag;
   float gamma;                        /* output blend, 1 - exp(-Ts / output_tau) (1: tau 0) */
   float bias_gain;                    /* gyro bias learning, 1 - exp(-Ts / bias_tau) (0: off) */
+  float tan_mag_step;                 /* tan(mag_rate_limit * Ts): largest turn of m_pred per sample (0: none) */
 } tcf_filter_coeffs_t;
 
 /* The state: the names of TogglingFilter's state (filters.base.COMMON_STATE_FIELDS, then bias, a_pred,
@@ -79,8 +80,8 @@ typedef struct tcf_filter {
 } tcf_filter_t;
 
 /* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time): the coefficients
-   (5 + 2 S), the filter (14 + 3 diagnostics), the features (TCF_FEATURES_STATE_BYTES) */
-#define TCF_STATE_BYTES (4 * (22 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
+   (6 + 2 S), the filter (14 + 3 diagnostics), the features (TCF_FEATURES_STATE_BYTES) */
+#define TCF_STATE_BYTES (4 * (23 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
 
 /* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
    settings (see "Rate at init"), identity orientation, not initialized, empty window, no

@@ -27,7 +27,11 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    fixed CF's τ: the out-of-fold predictions the gains are learned on fall back mostly on
    disturbed windows, where a fast correction follows the disturbance (docs/concepts/
    toggling-filter.md gives the measurement).
-5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m
+5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m,
+   lowered where needed so that the step turns m_pred by at most ω_m Ts (``mag_rate_limit`` ω_m
+   [rad/s]; 0: no bound): the heading correction moves at most ω_m, however large the error, as
+   Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
+   heading by at most ω_m times its duration, while small errors still decay with τ_mag
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
 
@@ -84,6 +88,7 @@ __all__ = [
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
+    "rate_bounded_gain",
     "toggle_step",
 ]
 
@@ -111,6 +116,8 @@ class TogglingSettings(FilterSettings):
         noise_weight_acc, noise_weight_mag: w_a, w_m of step 3, in [0, 1].
         confidence_floor: c₀ in [0, 1) of step 4's fallback: a prediction whose top class
             probability (of their sum) is below it is not used; 0 (default): every valid one is.
+        mag_rate_limit: ω_m [rad/s] of step 5: the fastest the magnetometer's vector CF step may turn
+            m_pred (so the heading); 0 (default): no bound. Finite and >= 0.
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models (``gains.json``, format 2). They are
     per-sample gains at BROAD's 285.714 Hz as time constants, τ = −Ts/ln(1 − α) rounded to 4
@@ -130,6 +137,7 @@ class TogglingSettings(FilterSettings):
     noise_weight_acc: float = 1.0
     noise_weight_mag: float = 1.0
     confidence_floor: float = 0.0
+    mag_rate_limit: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -156,6 +164,8 @@ class TogglingSettings(FilterSettings):
             raise ValueError(f"bias_gate must be >= 0 rad/s, got {self.bias_gate}")
         if not 0.0 <= self.confidence_floor < 1.0:
             raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
+        if not 0.0 <= self.mag_rate_limit < math.inf:
+            raise ValueError(f"mag_rate_limit must be finite and >= 0 rad/s, got {self.mag_rate_limit}")
 
 
 class TogglingCoefficients(NamedTuple):
@@ -174,6 +184,8 @@ class TogglingCoefficients(NamedTuple):
         mag_rejection_factor: f_reject of step 4 (``TogglingSettings.mag_rejection_factor``).
         alpha_fallback_acc, alpha_fallback_mag: the cautious gains per sample of step 4's
             fallback: the smallest of ``alpha_acc``/``alpha_mag``.
+        tan_mag_step: tan(ω_m Ts), the largest turn of m_pred per sample of step 5
+            (``TogglingSettings.mag_rate_limit``; 0: no bound).
     """
 
     use_mag: float
@@ -192,6 +204,7 @@ class TogglingCoefficients(NamedTuple):
     confidence_floor: float
     alpha_fallback_acc: float
     alpha_fallback_mag: float
+    tan_mag_step: float
 
 
 @njit(cache=True, inline="always")
@@ -205,6 +218,26 @@ def _gains(params, pred, total):
         aa += p * params.alpha_acc[s]
         am += p * params.alpha_mag[s]
     return aa / total, am / total
+
+
+@njit(cache=True, inline="always")
+def rate_bounded_gain(alpha, v_pred, v_meas, tan_step):
+    """Step 5's gain α, lowered where the vector CF step v_new = (1 − α) v + α m would turn v by
+    more than the angle θ_max per sample (``tan_step`` = tan θ_max; 0: no bound). The step turns v
+    by θ with tan θ = α |v × m| / (v · v_new); over the bound, α solves that equation at θ_max."""
+    if tan_step <= 0.0 or alpha <= 0.0:
+        return alpha
+    cx = v_pred[1] * v_meas[2] - v_pred[2] * v_meas[1]
+    cy = v_pred[2] * v_meas[0] - v_pred[0] * v_meas[2]
+    cz = v_pred[0] * v_meas[1] - v_pred[1] * v_meas[0]
+    cross = math.sqrt(cx * cx + cy * cy + cz * cz)
+    vv = v_pred[0] * v_pred[0] + v_pred[1] * v_pred[1] + v_pred[2] * v_pred[2]
+    vm = v_pred[0] * v_meas[0] + v_pred[1] * v_meas[1] + v_pred[2] * v_meas[2]
+    along = (1.0 - alpha) * vv + alpha * vm
+    denominator = cross + tan_step * (vv - vm)
+    if alpha * cross <= tan_step * along or denominator <= 0.0:
+        return alpha
+    return tan_step * vv / denominator
 
 
 @njit(cache=True)
@@ -264,6 +297,7 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
                   (1.0 - alpha_a) * a_pred[2] + alpha_a * a_d[2])
         diag[0] = alpha_a
     if mag_ok:
+        alpha_m = rate_bounded_gain(alpha_m, m_pred, m_d, params.tan_mag_step)
         m_pred = ((1.0 - alpha_m) * m_pred[0] + alpha_m * m_d[0], (1.0 - alpha_m) * m_pred[1] + alpha_m * m_d[1],
                   (1.0 - alpha_m) * m_pred[2] + alpha_m * m_d[2])
         diag[1] = alpha_m
@@ -309,7 +343,7 @@ class TogglingFilter(PredictionDrivenFilter):
                 "mag_rejection_factor": s.mag_rejection_factor,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
                 "confidence_floor": s.confidence_floor, "alpha_fallback_acc": float(alpha_acc.min()),
-                "alpha_fallback_mag": float(alpha_mag.min())}
+                "alpha_fallback_mag": float(alpha_mag.min()), "tan_mag_step": math.tan(s.mag_rate_limit * ts)}
 
     def _default_pred(self, n):
         pred = np.zeros((n, self.n_predictions))

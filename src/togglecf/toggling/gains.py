@@ -151,6 +151,9 @@ class GainSearch:
         noise_weight_acc, noise_weight_mag: grids of the weights of the predicted noise (default 0
             only: a noise vector learned on one sensor does not belong in another's signal).
         confidence_floor: grid of the confidence floor c₀ (0: never fall back on a valid prediction).
+        mag_rate_limit: grid of the heading correction's rate bound ω_m [rad/s] (0: none; 9D), the
+            first coordinate of the descent: the per-state τ_mag are then searched with the bound
+            in place (a bound makes a fast τ_mag safe in a disturbed field).
         sweeps: passes over all parameters.
         objective: what the descent minimises (``OBJECTIVES``, module docstring).
         step_rule: when a step is kept (``STEP_RULES``, module docstring): by default one standard
@@ -166,6 +169,7 @@ class GainSearch:
     noise_weight_acc: tuple = (0.0,)
     noise_weight_mag: tuple = (0.0,)
     confidence_floor: tuple = (0.0,)
+    mag_rate_limit: tuple = (0.0, 0.01, 0.02, 0.05)
     sweeps: int = 2
     objective: str = "worst_dataset_log_ratio"
     step_rule: str = "one_se"
@@ -191,6 +195,8 @@ class GainSearch:
     def candidates(self, settings: TogglingSettings, use_mag: bool = True):
         """(label, [(value, change), ...]) for each coordinate of the descent."""
         n = len(settings.states)
+        if use_mag:
+            yield "mag_rate_limit", [(v, {"mag_rate_limit": v}) for v in self.mag_rate_limit]
         for name in ("tau_acc", "tau_mag") if use_mag else ("tau_acc",):
             for s in range(n):
                 vals = []

@@ -305,7 +305,8 @@ def _fold_gains_info(res: dict) -> dict:
             "gains": {"tau_acc": gains9.tau_acc, "tau_mag": gains9.tau_mag, "output_tau": gains9.output_tau,
                       "bias_tau": gains9.bias_tau, "mag_disturbance_scale": gains9.mag_disturbance_scale,
                       "noise_weight_acc": gains9.noise_weight_acc, "noise_weight_mag": gains9.noise_weight_mag,
-                      "confidence_floor": gains9.confidence_floor, "train_objective": float(hist[-1][2])},
+                      "confidence_floor": gains9.confidence_floor,
+                      "mag_rate_limit": gains9.mag_rate_limit, "train_objective": float(hist[-1][2])},
             "vqf_gains": describe_gains(gains[mode_name(VQF_TOGGLING, True)].settings)}
 
 

@@ -618,5 +618,6 @@ def describe_gains(settings) -> str:
                 f"{settings.mag_disturbance_scale} µT, noise weights {settings.noise_weight_acc}/"
                 f"{settings.noise_weight_mag}, modulation τ {settings.modulation_tau} s")
     return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
-            f"bias τ {settings.bias_tau} s, σ_m {settings.mag_disturbance_scale}, noise weights "
-            f"{settings.noise_weight_acc}/{settings.noise_weight_mag}, c₀ {settings.confidence_floor}")
+            f"bias τ {settings.bias_tau} s, σ_m {settings.mag_disturbance_scale} µT, noise weights "
+            f"{settings.noise_weight_acc}/{settings.noise_weight_mag}, c₀ {settings.confidence_floor}, "
+            f"heading rate bound {settings.mag_rate_limit} rad/s")

@@ -6,7 +6,8 @@ emulator, not a measurement on the hardware (``togglecf.embedded.cycles``).
 
 Each filter is exported as ``togglecf export`` writes it (the VQF core ``tcf_vqf.c`` 9D and 6D; the
 learned VQF ``tcf_vqf_toggling.c`` with the pretrained model, and with a trained model directory's
-trees in the loop; the toggling CF ``tcf_filter.c``), compiled with ``arm-none-eabi-gcc`` for the
+trees in the loop, in the default array layout and in the complete one (``--forest-layout``); the
+toggling CF ``tcf_filter.c``), compiled with ``arm-none-eabi-gcc`` for the
 Cortex-M4F (``-mcpu=cortex-m4 -mthumb -mfpu=fpv4-sp-d16 -mfloat-abi=hard``, at each ``--opt``),
 linked bare-metal with newlib's libm, and run one update per sample on the first ``--samples`` of a
 BROAD trial in the emulator (unicorn), which counts the executed instructions; the cycles are
@@ -66,8 +67,9 @@ def filter_specs(models):
                 ("tcf_vqf_config.h",), use_mag,
                 lambda d, g, a, m, fs: cvqf.run_vqf_harness(cvqf.build_vqf_harness(d), g, a, m, dt=1.0 / fs))
 
-    def learned_vqf(source):
-        return (lambda d, fs: cvqf_toggling.export_c_vqf_toggling(source, d, fs, True, sizes=False),
+    def learned_vqf(source, layout="array"):
+        return (lambda d, fs: cvqf_toggling.export_c_vqf_toggling(source, d, fs, True, sizes=False,
+                                                                   forest_layout=layout),
                 cvqf_toggling.C_VQFT, (), True,
                 lambda d, g, a, m, fs: cvqf_toggling.run_vqft_harness(cvqf_toggling.build_vqft_harness(d), g, a, m))
 
@@ -75,6 +77,8 @@ def filter_specs(models):
              ("learned VQF 9D, pretrained model", *learned_vqf(PRETRAINED_FILE))]
     if models is not None:
         specs.append(("learned VQF 9D, trained model (trees in the loop)", *learned_vqf(models)))
+        specs.append(("learned VQF 9D, trained model, trees in the complete layout",
+                      *learned_vqf(models, "complete")))
         specs.append(("toggling CF 9D, trained model (trees in the loop)",
                       lambda d, fs: cfilter.export_c_filter(models, d, fs, True, riscv=False), cfilter.C_FILTER, (),
                       True, lambda d, g, a, m, fs: cfilter.run_harness(cfilter.build_harness(d), g, a, m)))

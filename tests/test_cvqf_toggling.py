@@ -192,6 +192,25 @@ def test_c_matches_python_in_loop(exported, model_dir, trial, mode):
     np.testing.assert_allclose(np.median(np.abs(tau_c - tau_py) / tau_py), 0.0, atol=1e-2 if followed else 1e-5)
 
 
+def test_complete_forest_layout_runs_the_same_filter(exported, model_dir, mini_trial, tmp_path):
+    """``forest_layout="complete"``: the trees padded and walked without a branch on the data
+    (forest_export.forest_to_c) sum the same leaves in the same order, so the C filter's predictions
+    and orientations equal the array layout's bit for bit (float32 outputs compared exactly)."""
+    rep, exe = exported["9d"]
+    assert rep["forest_layout"] == "array"  # the default: the faster walk on a microcontroller
+    d = tmp_path / "complete"
+    rep_c = cv.export_c_vqf_toggling(model_dir, d, mini_trial.fs, sizes=False, forest_layout="complete")
+    assert rep_c["forest_layout"] == "complete" and "(complete layout)" in (d / "tcf_forest.c").read_text()
+    t = mini_trial
+    q_a, d_a = cv.run_vqft_harness(exe, t.gyr, t.acc, t.mag, diagnostics=True)
+    q_c, d_c = cv.run_vqft_harness(cv.build_vqft_harness(d), t.gyr, t.acc, t.mag, diagnostics=True)
+    names = _pred_names(rep)
+    assert np.isfinite(d_a[names[0]]).any(), "the trees should run on the mini cut"
+    assert np.array_equal(q_a, q_c)
+    for k in names:
+        assert np.array_equal(d_a[k], d_c[k], equal_nan=True), k
+
+
 @pytest.mark.parametrize("mode", ["9d", "6d"])
 def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_dir, trial, mode):
     """Steps 1-5 alone (tcf_vqft_update_pred) vs VQFTogglingFilter, both driven by the Python

@@ -18,7 +18,7 @@ import xgboost as xgb  # noqa: E402
 from togglecf.cli.export import add_export_parser  # noqa: E402
 from togglecf.embedded import forest_export as export  # noqa: E402
 from togglecf.embedded import toolchain  # noqa: E402
-from togglecf.learn.trees import FlatForest  # noqa: E402
+from togglecf.learn.trees import COMPLETE_MAX_DEPTH, FlatForest  # noqa: E402
 
 TOL = 1e-5
 
@@ -152,12 +152,17 @@ def test_tl2cgen_quantized_equals_xgboost(synthetic, tmp_path):
     assert rep["ok"], rep
 
 
-def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path):
+@pytest.mark.parametrize("layout", export.C_LAYOUTS)
+def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path, layout):
+    """Each C layout gives XGBoost's margins, missing values (NaN) included (the synthetic rows hold
+    some); TOL: float32 leaves summed in double (or float) against XGBoost's float32 sums."""
     boosters, Xt = synthetic
+    assert np.isnan(Xt).any(), "the rows should exercise the missing-value branches"
     for name, b in boosters.items():
         forest = FlatForest.from_booster(b)
         prefix = f"tcf_{name}_"
-        h, c = export.forest_to_c(forest, prefix, n_classes=3 if name == "classifier" else 0)
+        h, c = export.forest_to_c(forest, prefix, n_classes=3 if name == "classifier" else 0, layout=layout)
+        assert f"({layout} layout)" in h
         (tmp_path / f"{prefix}forest.h").write_text(h)
         (tmp_path / f"{prefix}forest.c").write_text(c)
         harness = tmp_path / f"{prefix}harness.c"
@@ -170,6 +175,54 @@ def test_array_format_equals_flatforest_and_xgboost(synthetic, tmp_path):
             assert np.abs(got - forest.predict_margin(Xt)).max() <= TOL
             assert np.abs(got - export._xgb_predict(b, Xt, margin=True)).max() <= TOL
     assert len(h) > 0
+
+
+def _chain_forest(depth: int) -> FlatForest:
+    """One tree whose every split sends the right branch to a leaf: ``depth`` levels, 2 depth + 1 nodes."""
+    n = 2 * depth + 1
+    feature = np.full(n, -1, np.int32)
+    left, right = np.full(n, -1, np.int32), np.full(n, -1, np.int32)
+    for d in range(depth):  # node 2d splits: left to the next split (2d + 2), right to a leaf (2d + 1)
+        feature[2 * d], left[2 * d], right[2 * d] = 0, 2 * d + 2, 2 * d + 1
+    value = np.arange(n, dtype=np.float32)
+    threshold = np.where(feature >= 0, -np.arange(n, dtype=np.float32), 0).astype(np.float32)
+    return FlatForest(feature, threshold.astype(np.float32), left, right, np.zeros(n, bool), value,
+                      np.zeros(1, np.int32), np.zeros(1, np.int32), np.zeros(1), "identity", 1)
+
+
+def test_layout_bytes_count_the_complete_layouts_padding():
+    """``c_layout_bytes``: a chain of 10 splits (21 nodes, 8 bytes each in the array layout) pads to 1023
+    inner nodes (1 + 4 bytes) and 1024 leaves (4 bytes) in the complete layout; a stump (one split,
+    two leaves: 3 x 8 bytes) takes 5 + 8 there. Trees deeper than ``COMPLETE_MAX_DEPTH``: no complete
+    layout, and ``forest_to_c`` says so."""
+    tables = 2 + 1 + 4  # per tree: array root (uint16) + group (uint8); + the base margin (float)
+    assert export.c_layout_bytes(_chain_forest(10)) == {"array": 21 * 8 + tables,
+                                                        "complete": 1023 * 5 + 1024 * 4 + 2 + 2 + 1 + 1 + 4}
+    assert export.c_layout_bytes(_chain_forest(1)) == {"array": 3 * 8 + tables, "complete": 5 + 8 + 1 + 1 + 1 + 1 + 4}
+    deep = _chain_forest(COMPLETE_MAX_DEPTH + 1)
+    assert export.c_layout_bytes(deep)["complete"] is None
+    with pytest.raises(ValueError, match="complete"):
+        export.forest_to_c(deep, layout="complete")
+    with pytest.raises(ValueError, match="layout must be one of"):
+        export.forest_to_c(deep, layout="tree")
+
+
+def test_complete_layout_walks_the_chain_like_the_forest(tmp_path):
+    """The chain's leaves are reached at every depth, padding included (a leaf above the padded depth
+    continues left): the C margins equal ``predict_margin`` on values either side of every threshold
+    (node 2d splits at -2d), on them, and on NaN (default right)."""
+    chain = _chain_forest(6)
+    h, c = export.forest_to_c(chain, "tcf_", layout="complete")
+    (tmp_path / "tcf_forest.h").write_text(h)
+    (tmp_path / "tcf_forest.c").write_text(c)
+    harness = tmp_path / "harness.c"
+    harness.write_text(export.ARRAY_HARNESS.replace("{P}", "tcf_").replace("{U}", "TCF_"))
+    lib = ctypes.CDLL(str(toolchain.gcc_shared([harness, tmp_path / "tcf_forest.c"], tmp_path / "lib.so",
+                                               [tmp_path])))
+    X = np.array([[v] for v in (0.5, 0.0, -1.0, -2.0, -3.0, -4.0, -5.0, -7.0, -9.0, -10.0, -11.0, np.nan)], np.float32)
+    want = chain.predict_margin(X)
+    assert len(np.unique(want)) == 7, "the rows should end in every leaf"
+    assert np.array_equal(export.array_batch_predict(lib, "tcf_", X, 1), want)
 
 
 def test_measure_sizes_host_and_riscv(tmp_path):
@@ -232,6 +285,20 @@ def test_cli_export(tiny_models, mini_index, tmp_path, capsys):
     assert "OK" in out and "forest" in out
     assert (tmp_path / "emb" / "export_report.json").is_file()
     assert (tmp_path / "emb" / "array" / "tcf_forest.c").is_file()
+
+
+def test_cli_forest_layout_choices_are_the_exports():
+    """``--forest-layout`` lists its choices literally (the CLI parser stays light): they must be
+    ``forest_export.C_LAYOUTS``, array the default."""
+    import argparse
+
+    p = argparse.ArgumentParser()
+    add_export_parser(p.add_subparsers(dest="command"))
+    assert p.parse_args(["export", "--out", "x"]).forest_layout == "array"
+    for layout in export.C_LAYOUTS:
+        assert p.parse_args(["export", "--out", "x", "--forest-layout", layout]).forest_layout == layout
+    with pytest.raises(SystemExit):
+        p.parse_args(["export", "--out", "x", "--forest-layout", "tree"])
 
 
 def test_c_float_literals_round_trip():

@@ -57,8 +57,6 @@ VQFT_STATE_C_ONLY = {
             "fields in line (compared above)",
     "feat": "the models' feature window and held prediction; Python keeps them outside the filter, "
             "with the models (toggling.inloop)",
-    "k_mag_now": "1 - exp(-Ts / tau_mag_now), cached before the back-off so C computes no expf per sample; "
-                 "Python recomputes it from tau_mag_now every sample",
 }
 VQFT_STATE_PY_ONLY = {
     "mag_backoff": "the back-off factor 1 + e of the last sample (a record of the step); C applies it "

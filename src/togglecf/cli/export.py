@@ -106,7 +106,8 @@ def _export_filter(args, riscv: bool, choice) -> tuple[dict, bool]:
     fs = None if is_portable_file(args.models) else float(load_bundle(args.models).metadata["sampling_rate"])
     mode = "6D" if args.six_d else "9D"
     if args.filter == "vqf_toggling":
-        rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d)
+        rep = export_c_vqf_toggling(args.models, filter_dir, fs, use_mag=not args.six_d,
+                                    forest_layout=args.forest_layout)
         forest_size = rep["object_sizes"]["tcf_forest.c"]  # {host, riscv, arm}: {text, data, bss, total}
         code = rep["code_bytes"]
         print(f"C learned VQF filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "
@@ -116,7 +117,8 @@ def _export_filter(args, riscv: bool, choice) -> tuple[dict, bool]:
               f"{_fmt_size(rep['code_bytes_gc']['arm'])} Cortex-M4F; rate at init (tcf_vqft_init), "
               f"Arduino/PlatformIO library in {rep['library']}")
     else:
-        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv)
+        rep = export_c_filter(args.models, filter_dir, fs, use_mag=not args.six_d, riscv=riscv,
+                              forest_layout=args.forest_layout)
         forest_size = rep["object_sizes"]["tcf_forest.c"]
         linked = rep.get("linked_riscv")
         print(f"C filter ({mode}, float32) in {filter_dir}: state {rep['state_bytes']} bytes; "

@@ -332,6 +332,10 @@ def add_export_parser(subparsers):
                     help="which learned filter (one of %(choices)s) goes to OUT/filter in C: toggling (the toggling CF, gains 9d/6d; "
                     "togglecf.embedded.cfilter) or vqf_toggling (the VQF core with learned time constants, gains "
                     "vqf_9d/vqf_6d; togglecf.embedded.cvqf_toggling: sizes for host, rv32imc and Cortex-M4F)")
+    sp.add_argument("--forest-layout", choices=("array", "complete"), default="array",  # forest_export.C_LAYOUTS
+                    help="C layout of the filter's trees (--filter): array (default; compact, the faster walk on a "
+                    "microcontroller) or complete (padded to complete trees, no branch on the data per node: the "
+                    "faster walk on a processor that predicts branches, e.g. a PC or a Cortex-A; same margins)")
     sp.add_argument("--max-bytes", type=int, metavar="N",
                     help="flash budget: train a pruned point on the model's training trials into OUT/models and "
                     "export that: the point of an existing pruning sweep in --sweep DIR with the lowest held-out "

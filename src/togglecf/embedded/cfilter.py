@@ -37,7 +37,7 @@ import numpy as np
 from togglecf.core.io import atomic_write_json
 from togglecf.embedded import framework, learned
 from togglecf.embedded.framework import HARNESS_CFLAGS
-from togglecf.embedded import learned
+from togglecf.embedded.forest_export import c_layout_bytes
 from togglecf.embedded.toolchain import (
     c_float,
     link_riscv,
@@ -103,13 +103,15 @@ def _filter_defines(settings, static_index: int, fs: float) -> str:
 
 
 def export_c_filter(model_dir, out_dir, fs=None, use_mag: bool = True, riscv: bool = True, *,
-                    max_fs: float = learned.DEFAULT_MAX_FS) -> dict:
+                    max_fs: float = learned.DEFAULT_MAX_FS, forest_layout: str = "array") -> dict:
     """Write the C filter of ``model_dir`` (a ``togglecf train`` directory with ``gains.json``)
     into ``out_dir``, rate-free: the C takes its rate at init (``tcf_filter_init(&f, fs)``, any rate
     up to ``max_fs`` [Hz], ``TCF_MAX_FS``, for which the feature ring is sized). ``fs`` [Hz]: only
     the default rate of the host harness and the size probes (``TCF_DEFAULT_FS``; None: the models'
     ``sampling_rate``); the report's ``window``, ``hop`` and ``per_sample_gains`` are at it. Returns
-    the report (also written as ``out_dir/filter_report.json``): ``files``, ``state_bytes``
+    the report (also written as ``out_dir/filter_report.json``). ``forest_layout``: the trees' C layout
+    (``forest_export.forest_to_c``: ``array``, the faster on a microcontroller, or ``complete``, the faster
+    on a processor that predicts branches). The report: ``files``, ``state_bytes``
     (sizeof(tcf_filter_t), measured with gcc), ``object_sizes`` and, with the RISC-V toolchain,
     ``linked_riscv`` (an rv32imc picolibc program calling init/update: its ``flash`` = text + data
     bytes)."""
@@ -121,14 +123,15 @@ def export_c_filter(model_dir, out_dir, fs=None, use_mag: bool = True, riscv: bo
     config = framework.config_header("tcf_config.h", "cfilter.export_c_filter", comment, common + "\n"
                                      + _filter_defines(s, s.states.index(s.static_state), ex.fs))
     files = framework.write_source_set(out_dir, C_FILTER, {"tcf_config.h": config})
-    forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex)
+    forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex, forest_layout)
     files += forest_files
     p = filt.params
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(f) for f in files],
               "fs": ex.fs, "rate": "at init (tcf_filter_init); fs: the harness's default", "max_fs": ex.max_fs,
               "window_max": L, "use_mag": bool(use_mag), "window": ex.window, "hop": ex.hop, "n_classes": k,
               "class_names": ex.classes, "n_features": int(ex.forest.n_features), "n_trees": int(len(ex.forest.roots)),
-              "n_nodes": n_nodes, "dropped_outputs": ex.dropped, "settings": asdict(s),
+              "n_nodes": n_nodes, "forest_layout": forest_layout,
+              "forest_layout_bytes": c_layout_bytes(ex.forest), "dropped_outputs": ex.dropped, "settings": asdict(s),
               "per_sample_gains": {"alpha_acc": p.alpha_acc.tolist(), "alpha_mag": p.alpha_mag.tolist(),
                                    "gamma": float(p.gamma), "bias_gain": float(p.bias_gain),
                                    "alpha_fallback_acc": float(p.alpha_fallback_acc),

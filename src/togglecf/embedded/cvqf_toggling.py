@@ -40,6 +40,7 @@ from pathlib import Path
 from togglecf.core.io import atomic_write_json
 from togglecf.embedded.cvqf import vqf_config_header, vqf_state_bytes
 from togglecf.embedded import framework, learned
+from togglecf.embedded.forest_export import c_layout_bytes
 from togglecf.embedded.library import LibrarySpec, write_library
 from togglecf.embedded.toolchain import (
     ARM_FLAGS,
@@ -163,13 +164,15 @@ def _stack(out_dir: Path) -> dict:
 
 
 def export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag: bool = True, *, sizes: bool = True,
-                          max_fs: float = learned.DEFAULT_MAX_FS) -> dict:
+                          max_fs: float = learned.DEFAULT_MAX_FS, forest_layout: str = "array") -> dict:
     """Write the learned VQF filter of ``model_dir`` (a ``togglecf train`` directory whose
     ``gains.json`` has ``vqf_9d`` / ``vqf_6d``, or a portable model file: the pretrained model's
     ``learned_vqf.npz``, ``learned.load_portable_export``) into ``out_dir``, rate-free: the C takes its rate
     at init (``tcf_vqft_init(&f, fs)``, any rate up to ``max_fs`` [Hz], ``TCF_MAX_FS``, for which
     the feature ring is sized). ``fs`` [Hz]: only the default rate of the host harness and the
-    size probes (``TCF_DEFAULT_FS``; None: the models' ``sampling_rate``). Returns the report
+    size probes (``TCF_DEFAULT_FS``; None: the models' ``sampling_rate``). ``forest_layout``: the trees'
+    C layout (``forest_export.forest_to_c``: ``array``, the faster on a microcontroller, or ``complete``,
+    the faster on a processor that predicts branches). Returns the report
     (also ``out_dir/vqf_toggling_report.json``): ``files``, ``state_bytes`` (sizeof(tcf_vqft_t), gcc),
     ``fallback`` (the out-of-range rule as exported) and, with ``sizes``, ``object_sizes``
     {source: {host, riscv, arm}} (-Os; None where a cross compiler is missing), ``code_bytes``
@@ -196,7 +199,7 @@ def export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag: bool = True, *, 
                                      rate + common + "\n" + _filter_defines(filt))
     files = framework.write_source_set(out_dir, C_VQFT, {
         "tcf_config.h": config, "tcf_vqf_config.h": vqf_config_header(None, s.core_settings, use_mag)})
-    forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex)
+    forest_files, n_nodes = learned.write_forest(out_dir, model_dir, ex, forest_layout)
     files += forest_files
 
     report = {"out_dir": str(out_dir), "model_dir": str(model_dir), "files": [str(p) for p in files], "fs": ex.fs,
@@ -204,6 +207,8 @@ def export_c_vqf_toggling(model_dir, out_dir, fs=None, use_mag: bool = True, *, 
               "window_max": L, "use_mag": bool(use_mag), "window": ex.window, "hop": ex.hop, "n_classes": k,
               "class_names": ex.classes,
               "n_features": int(ex.forest.n_features), "n_trees": int(len(ex.forest.roots)), "n_nodes": n_nodes,
+              "forest_layout": forest_layout,
+              "forest_layout_bytes": c_layout_bytes(ex.forest),
               "dropped_outputs": ex.dropped, "settings": asdict(s), "fallback": learned.fallback_config(filt.models)[1],
               "schema_hash": ex.schema_hash, "model_hash": ex.model_hash, "gains_sha256": ex.gains_hash,
               "coefficients": "core: derived in C by tcf_vqf_init; modulation: tcf_vqf_mod_from at each "

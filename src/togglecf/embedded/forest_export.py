@@ -57,7 +57,8 @@ from togglecf.learn.trees import FlatForest
 
 __all__ = ["BOOSTER_NAMES", "export_tl2cgen", "export_tl2cgen_boosters", "export_array_c", "bundle_boosters",
            "window_features_of_trials", "tl2cgen_batch_predict", "array_batch_predict", "forest_to_c",
-           "rename_tl2cgen_sources", "model_sizes", "preorder", "ARRAY_HARNESS", "ARRAY_LINK_MAIN", "tl2cgen_link_main",
+           "rename_tl2cgen_sources", "model_sizes", "preorder", "C_LAYOUTS", "c_layout_bytes",
+           "ARRAY_HARNESS", "ARRAY_LINK_MAIN", "tl2cgen_link_main",
            "TOLERANCE"]
 
 BOOSTER_NAMES = ("classifier", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z")
@@ -313,8 +314,25 @@ def _c_array(ctype: str, name: str, values, fmt=str, per_line: int = 12) -> str:
     return f"static const {ctype} {name}[{max(1, len(vals))}] = {{\n  " + ",\n  ".join(lines) + "\n};\n"
 
 
-def forest_to_c(forest, prefix: str = "tcf_", n_classes: int = 0, comment: str = "") -> tuple:
-    """``(header_text, source_text)`` of a ``FlatForest`` in the compact array format."""
+#: the C layouts of ``forest_to_c`` (the same ``predict`` API, the same margins)
+C_LAYOUTS = ("array", "complete")
+
+
+def _uint_type(largest: int) -> str:
+    return "uint8_t" if largest <= 0xFF else ("uint16_t" if largest <= 0xFFFF else "uint32_t")
+
+
+def _c_threshold(v) -> str:
+    """A split threshold as a C literal: ``INFINITY`` for the complete layout's padding nodes."""
+    return "INFINITY" if np.isposinf(v) else c_float(v)
+
+
+def _bytes_of(ctype: str) -> int:
+    return {"uint8_t": 1, "int16_t": 2, "uint16_t": 2, "uint32_t": 4, "float": 4}[ctype]
+
+
+def _array_tables(forest) -> tuple:
+    """The array layout: (per-node and per-tree C tables, node count, the walk's comment and code)."""
     if forest.n_features >= 0x4000:
         raise ValueError("the array format packs the feature index in 14 bits")
     order, new = preorder(forest)
@@ -325,19 +343,101 @@ def forest_to_c(forest, prefix: str = "tcf_", n_classes: int = 0, comment: str =
     right = np.where(inner, new[np.where(inner, forest.right[order], 0)] - np.arange(len(order)), 0)
     if right.max(initial=0) > 0xFFFF:
         raise ValueError("a tree is too large for 16-bit child offsets")
-    roots = new[forest.roots]
+    root_t = "uint16_t" if len(order) <= 0xFFFF else "uint32_t"
+    tables = [("int16_t", "feat", code, str), ("float", "thr", thr, c_float), ("uint16_t", "right", right, str),
+              (root_t, "root", new[forest.roots], str)]
+    comment = """Node i: {P}feat[i] = feature index (bits 0-13) | 0x4000 if a missing value goes left,
+   or -1 for a leaf; {P}thr[i] = split threshold, or the leaf value; the left child is
+   node i + 1, the right child node i + {P}right[i]. Tree t starts at {P}root[t] and adds
+   its leaf to out[{P}group[t]]."""
+    walk = """  for (int t = 0; t < {U}N_TREES; ++t) {
+    uint32_t i = {P}root[t];
+    int16_t f;
+    while ((f = {P}feat[i]) >= 0) {
+      float v = x[f & 0x3FFF];
+      int go_left = isnan(v) ? (f & 0x4000) != 0 : v < {P}thr[i];
+      i = go_left ? i + 1u : i + {P}right[i];
+    }
+    acc[{P}group[t]] += {P}thr[i];
+  }"""
+    return tables, len(order), comment, walk
+
+
+def _complete_tables(forest) -> tuple:
+    """The complete layout (``FlatForest.complete``): as ``_array_tables``."""
+    c = forest.complete()  # ValueError: trees too deep, or a threshold the missing-value encoding cannot take
+    F = forest.n_features
+    tables = [(_uint_type(2 * F + 1), "feat", c.feature, str), ("float", "thr", c.threshold, _c_threshold),
+              ("float", "leaf", c.value, c_float), (_uint_type(len(c.feature)), "inner", c.inner_offset, str),
+              (_uint_type(len(c.value)), "leaf_at", c.leaf_offset, str), ("uint8_t", "depth", c.depth, str)]
+    comment = f"""Tree t is a complete binary tree of depth {{P}}depth[t] (padded): inner node i (breadth-first:
+   children 2i+1 left, 2i+2 right) at {{P}}inner[t] + i of {{P}}feat and {{P}}thr, leaf j at
+   {{P}}leaf_at[t] + j of {{P}}leaf; it adds its leaf to out[{{P}}group[t]]. {{P}}feat indexes the row
+   xs that holds each feature twice: j where a missing value of feature j goes left (NaN as -inf),
+   {F + 1} + j where it goes right (NaN as +inf), {F} a constant 0 for padding (threshold +INFINITY:
+   always left). Every step is "left when xs < threshold", without a branch on the data."""
+    walk = f"""  float xs[{2 * F + 2}];
+  for (int j = 0; j < {F}; ++j) {{
+    float v = x[j];
+    xs[j] = isnan(v) ? -INFINITY : v;
+    xs[{F + 1} + j] = isnan(v) ? INFINITY : v;
+  }}
+  xs[{F}] = 0.0f;
+  xs[{2 * F + 1}] = 0.0f;
+  for (int t = 0; t < {{U}}N_TREES; ++t) {{
+    const {_uint_type(2 * F + 1)} *feat = {{P}}feat + {{P}}inner[t];
+    const float *thr = {{P}}thr + {{P}}inner[t];
+    uint32_t i = 0, depth = {{P}}depth[t];
+    for (uint32_t d = 0; d < depth; ++d) i = 2u * i + 2u - (uint32_t)(xs[feat[i]] < thr[i]);
+    acc[{{P}}group[t]] += {{P}}leaf[{{P}}leaf_at[t] + i - ((1u << depth) - 1u)];
+  }}"""
+    return tables, len(c.feature) + len(c.value), comment, walk
+
+
+_TABLES = {"array": _array_tables, "complete": _complete_tables}
+
+
+def _group_table(forest) -> tuple:
+    return (_uint_type(max(forest.n_outputs - 1, 0)), "group", forest.tree_group, str)
+
+
+def c_layout_bytes(forest) -> dict:
+    """Constant data [bytes] of ``forest`` in each C layout of ``forest_to_c`` (its tables, the base
+    margins included; None where the layout cannot hold the trees)."""
+    out = {}
+    for layout, tables_of in _TABLES.items():
+        try:
+            tables = tables_of(forest)[0]
+        except ValueError:
+            out[layout] = None
+            continue
+        tables = [*tables, _group_table(forest)]
+        out[layout] = sum(_bytes_of(t) * max(1, len(v)) for t, _, v, _ in tables) + 4 * forest.n_outputs
+    return out
+
+
+def forest_to_c(forest, prefix: str = "tcf_", n_classes: int = 0, comment: str = "", layout: str = "array") -> tuple:
+    """``(header_text, source_text)`` of a ``FlatForest`` in a C ``layout`` of ``C_LAYOUTS``: ``array``
+    (compact: 8 bytes per node, a branch per node; the faster walk on a microcontroller without branch
+    prediction, e.g. the Cortex-M4F of ``pipelines/bench_cycles.py``) or ``complete`` (the trees padded
+    to complete binary trees, ``FlatForest.complete``: every step "left when x < threshold" without a
+    branch on the data, the faster walk on a processor that predicts branches, e.g. the host of
+    ``pipelines/bench_learned_vqf.py``; ``ValueError`` where it cannot hold the trees). Both define
+    ``<prefix>predict`` (raw margins, the leaves summed in tree order in ``TCF_ACC_T``: the same margins)
+    and, with ``n_classes``, ``<prefix>softmax``."""
+    if layout not in _TABLES:
+        raise ValueError(f"layout must be one of {C_LAYOUTS}, got {layout!r}")
+    tables, n_nodes, node_comment, walk = _TABLES[layout](forest)
     n_out = forest.n_outputs
     P, U = prefix, prefix.upper()
-    group_t = "uint8_t" if n_out < 256 else "uint16_t"
-    root_t = "uint16_t" if len(order) <= 0xFFFF else "uint32_t"
-    header = f"""/* {comment or 'tree ensemble'}: generated by togglecf.embedded.forest_export (array format). */
+    header = f"""/* {comment or 'tree ensemble'}: generated by togglecf.embedded.forest_export ({layout} layout). */
 #ifndef {U}FOREST_H
 #define {U}FOREST_H
 #define {U}N_FEATURES {forest.n_features}
 #define {U}N_OUTPUTS {n_out}
 #define {U}N_CLASSES {n_classes}
 #define {U}N_TREES {len(forest.roots)}
-#define {U}N_NODES {len(order)}
+#define {U}N_NODES {n_nodes}
 /* Raw margins of one feature row x[{U}N_FEATURES] (NaN = missing) into out[{U}N_OUTPUTS]
    (xgboost's rules: go left when x < threshold as float32, NaN follows the default branch).
    Returns out[0]. Do not compile with -ffast-math (it removes the isnan test). */
@@ -345,11 +445,10 @@ float {P}predict(const float *x, float *out);
 """ + (f"""/* Softmax of the first {U}N_CLASSES outputs in place (class probabilities). */
 void {P}softmax(float *out);
 """ if n_classes else "") + "#endif\n"
-    body = f"""/* {comment or 'tree ensemble'}: generated by togglecf.embedded.forest_export (array format).
-   Node i: {P}feat[i] = feature index (bits 0-13) | 0x4000 if a missing value goes left,
-   or -1 for a leaf; {P}thr[i] = split threshold, or the leaf value; the left child is
-   node i + 1, the right child node i + {P}right[i]. Tree t starts at {P}root[t] and adds
-   its leaf to out[{P}group[t]]. */
+    arrays = "".join(_c_array(ctype, P + name, values, fmt, 6 if ctype == "float" else 12)
+                     for ctype, name, values, fmt in [*tables, _group_table(forest)])
+    body = f"""/* {comment or 'tree ensemble'}: generated by togglecf.embedded.forest_export ({layout} layout).
+   {node_comment.replace("{P}", P)} */
 #include <math.h>
 #include <stdint.h>
 #include "{P}forest.h"
@@ -360,23 +459,11 @@ void {P}softmax(float *out);
 #define TCF_ACC_T double
 #endif
 
-""" + _c_array("int16_t", f"{P}feat", code) + _c_array("float", f"{P}thr", thr, c_float, 6) \
-        + _c_array("uint16_t", f"{P}right", right) + _c_array(root_t, f"{P}root", roots) \
-        + _c_array(group_t, f"{P}group", forest.tree_group) \
-        + _c_array("float", f"{P}base", forest.base_margin, c_float, 6) + f"""
+""" + arrays + _c_array("float", f"{P}base", forest.base_margin, c_float, 6) + f"""
 float {P}predict(const float *x, float *out) {{
   TCF_ACC_T acc[{U}N_OUTPUTS];
   for (int k = 0; k < {U}N_OUTPUTS; ++k) acc[k] = {P}base[k];
-  for (int t = 0; t < {U}N_TREES; ++t) {{
-    uint32_t i = {P}root[t];
-    int16_t f;
-    while ((f = {P}feat[i]) >= 0) {{
-      float v = x[f & 0x3FFF];
-      int go_left = isnan(v) ? (f & 0x4000) != 0 : v < {P}thr[i];
-      i = go_left ? i + 1u : i + {P}right[i];
-    }}
-    acc[{P}group[t]] += {P}thr[i];
-  }}
+{walk.replace("{P}", P).replace("{U}", U)}
   for (int k = 0; k < {U}N_OUTPUTS; ++k) out[k] = (float)acc[k];
   return out[0];
 }}

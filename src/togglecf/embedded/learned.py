@@ -201,12 +201,13 @@ def model_export(model_dir: Path, meta: dict, fs: float, filt, max_fs=None, mode
                        window_max=window_length(max_fs, fset.window_s))
 
 
-def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport) -> tuple[list, int]:
+def write_forest(out_dir: Path, model_dir: Path, ex: ModelExport, layout: str = "array") -> tuple[list, int]:
     """``tcf_forest.h`` / ``tcf_forest.c`` (the trees ``ex.filt`` walks, leaf sums in
-    ``TCF_ACC_T`` of ``tcf_config.h``) in ``out_dir``: returns the paths and the node count."""
+    ``TCF_ACC_T`` of ``tcf_config.h``) in ``out_dir``, in the C ``layout`` of ``forest_to_c``:
+    returns the paths and the node count (the complete layout's padding included)."""
     comment = (f"model {model_dir.resolve().name}: outputs {', '.join(ex.classes)} (margins), eta_acc xyz, eta_mag xyz"
                + (f"; trees of {', '.join(ex.dropped)} not exported (base margin only)" if ex.dropped else ""))
-    header, source = forest_to_c(ex.forest, "tcf_", len(ex.classes), comment)
+    header, source = forest_to_c(ex.forest, "tcf_", len(ex.classes), comment, layout=layout)
     files = [atomic_write_text(out_dir / "tcf_forest.h", header),
              atomic_write_text(out_dir / "tcf_forest.c",
                                '#include "tcf_config.h" /* TCF_ACC_T: type of the leaf sums */\n' + source)]

@@ -252,12 +252,16 @@ void tcf_vqf_base_mod(const tcf_vqf_t *f, tcf_vqf_mod_t *m) {
   m->rest_th_acc_sq = f->c.rest_th_acc_sq;
 }
 
+tcf_vqf_lp_coef_t tcf_vqf_acc_lp_from(const tcf_vqf_t *f, float tau_acc) { return lp_coef(tau_acc, f->c.ts); }
+
+float tcf_vqf_k_mag_from(const tcf_vqf_t *f, float tau_mag) { return gain_from_tau(tau_mag, f->c.ts); }
+
 /* modulate, step 3 (filters/vqf_toggling.py): the coefficients of blended time constants */
 void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float sigma_motion, tcf_vqf_mod_t *m) {
   const tcf_vqf_coef_t *c = &f->c;
   float s2 = sigma_motion * sigma_motion;
-  m->acc_lp = lp_coef(tau_acc, c->ts);
-  m->k_mag = gain_from_tau(tau_mag, c->ts);
+  m->acc_lp = tcf_vqf_acc_lp_from(f, tau_acc);
+  m->k_mag = tcf_vqf_k_mag_from(f, tau_mag);
   m->bias_w_motion = s2 * (s2 / c->bias_v) + s2;  /* (B5), bias_noise_w */
   m->bias_w_vertical = m->bias_w_motion * (c->bias_w_vertical / c->bias_w_motion);
   m->rest_th_gyr_sq = c->rest_th_gyr_sq;

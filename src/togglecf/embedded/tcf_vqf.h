@@ -178,6 +178,9 @@ void tcf_vqf_base_mod(const tcf_vqf_t *f, tcf_vqf_mod_t *m);
    the tau_acc Butterworth low-pass, k_mag = 1 - exp(-Ts / tau_mag), W_motion = s^4 / V + s^2
    and W_vertical = W_motion * (W_vertical / W_motion of the settings); rest thresholds as set. */
 void tcf_vqf_mod_from(const tcf_vqf_t *f, float tau_acc, float tau_mag, float sigma_motion, tcf_vqf_mod_t *m);
+/* Its parts for one time constant [s] (> 0): the tau_acc low-pass, and k_mag = 1 - exp(-Ts / tau_mag) */
+tcf_vqf_lp_coef_t tcf_vqf_acc_lp_from(const tcf_vqf_t *f, float tau_acc);
+float tcf_vqf_k_mag_from(const tcf_vqf_t *f, float tau_mag);
 
 /* One sample with the coefficients *m instead of the settings' ones (tcf_vqf_update_dt is this
    with tcf_vqf_base_mod). *m may change from one call to the next: the low-pass states (level

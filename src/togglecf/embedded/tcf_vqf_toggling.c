@@ -121,20 +121,21 @@ static void tcf_vqft_modulate(tcf_vqft_t *f, const tcf_prediction_t *pred) {
 }
 
 #if TCF_VQFT_FOLLOW
-/* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets, then the
-   tau_acc low-pass coefficients and k_mag (before the back-off: tcf_vqft_heading_gain) from them. Every
-   sample, without the Python filter's snap at 1e-9: in float32 the step stalls within an ulp of the target
-   anyway */
+/* _follow (modulation_tau): ln tau_acc, ln tau_mag one first-order step towards their targets; the
+   tau_acc low-pass coefficients recomputed while ln tau_acc moves, k_mag before the back-off
+   (tcf_vqft_heading_gain) while ln tau_mag moves (a constant at its target: nothing computed). Without
+   the Python filter's snap at 1e-9: in float32 the step stalls within an ulp of the target anyway */
 static void tcf_vqft_follow(tcf_vqft_t *f) {
-  tcf_vqf_mod_t m;
-  f->ln_tau_acc_now += f->modulation_gain * (f->ln_tau_acc_target - f->ln_tau_acc_now);
-  f->ln_tau_mag_now += f->modulation_gain * (f->ln_tau_mag_target - f->ln_tau_mag_now);
-  f->tau_acc_now = expf(f->ln_tau_acc_now);
-  f->tau_mag_now = expf(f->ln_tau_mag_now);
-  /* only acc_lp and k_mag are taken (sigma unused) */
-  tcf_vqf_mod_from(&f->core, f->tau_acc_now, f->tau_mag_now, 1.0f, &m);
-  f->mod.acc_lp = m.acc_lp;
-  f->k_mag_now = m.k_mag;
+  if (f->ln_tau_acc_now != f->ln_tau_acc_target) {
+    f->ln_tau_acc_now += f->modulation_gain * (f->ln_tau_acc_target - f->ln_tau_acc_now);
+    f->tau_acc_now = expf(f->ln_tau_acc_now);
+    f->mod.acc_lp = tcf_vqf_acc_lp_from(&f->core, f->tau_acc_now);
+  }
+  if (f->ln_tau_mag_now != f->ln_tau_mag_target) {
+    f->ln_tau_mag_now += f->modulation_gain * (f->ln_tau_mag_target - f->ln_tau_mag_now);
+    f->tau_mag_now = expf(f->ln_tau_mag_now);
+    f->k_mag_now = tcf_vqf_k_mag_from(&f->core, f->tau_mag_now);
+  }
 }
 #endif
 

@@ -193,14 +193,16 @@ VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
 
 #: the core's state, then the modulation in use (a ``CoreModulation`` record), τ_acc, τ_mag and λ in
 #: use (diagnostics), the last prediction row (to see changes), the targets and followed ln τ_acc,
-#: ln τ_mag (``_follow``) and the heading back-off (``_heading_gain``)
+#: ln τ_mag (``_follow``), the heading back-off (``_heading_gain``) and k_mag of τ_mag in use before
+#: the back-off (computed when τ_mag moves, not every sample)
 STATE_FIELDS = CORE_STATE_FIELDS + (
     ("mod", record_fields(CoreModulation, "mod_")),
     ("tau_acc_now", "tau_acc_now"), ("tau_mag_now", "tau_mag_now"), ("trust_now", "trust_now"),
     ("last_p", tuple(f"last_p{s}" for s in range(PredictionLayout.of(MAX_STATES).size))),
     ("ln_tau_acc_target", "ln_tau_acc_target"), ("ln_tau_mag_target", "ln_tau_mag_target"),
     ("ln_tau_acc_now", "ln_tau_acc_now"), ("ln_tau_mag_now", "ln_tau_mag_now"),
-    ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"))
+    ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"),
+    ("k_mag_now", "k_mag_now"))
 VQFT_STATE, _STATE_NAMES = state_record(STATE_FIELDS)
 _vqft_state = record_view(VQFT_STATE)
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
@@ -263,8 +265,8 @@ def modulate(st, p, pred):
 @njit(cache=True)
 def _follow(st, p):
     """``modulation_tau``: ln τ_acc and ln τ_mag one step towards their targets (first-order
-    low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves (k_mag:
-    ``_heading_gain``, every sample)."""
+    low-pass), the τ_acc low-pass coefficients recomputed while ln τ_acc moves, k_mag before the
+    back-off (``k_mag_now``) while ln τ_mag moves."""
     k = p.modulation_gain
     la, lm = st.ln_tau_acc_now, st.ln_tau_mag_now
     ta, tm = st.ln_tau_acc_target, st.ln_tau_mag_target
@@ -283,6 +285,7 @@ def _follow(st, p):
             lm = tm
         st.ln_tau_mag_now = lm
         st.tau_mag_now = math.exp(lm)
+        st.k_mag_now = gain_from_tau(st.tau_mag_now, p.ts)
 
 
 @njit(cache=True, inline="always")
@@ -304,7 +307,7 @@ def _field_deviation_sq(st, mag):
 
 @njit(cache=True, inline="always")
 def _heading_gain(st, p, mag):
-    """Step 3's k_mag for this sample: the followed τ_mag's gain divided by the back-off
+    """Step 3's k_mag for this sample: the followed τ_mag's gain (``k_mag_now``) divided by the back-off
     1 + e, e = (|η̂_m| / σ_m)² at most f_reject − 1 (the core's rejection factor: the learned
     back-off slows the heading correction no more than the core's own, M4), or with
     ``mag_backoff_measured`` at most the disturbance the magnetometer itself shows,
@@ -316,7 +319,7 @@ def _heading_gain(st, p, mag):
         else:
             e = min(e, max(p.mag_rejection_factor - 1.0, 0.0))
     st.mag_backoff = 1.0 + e
-    st.mod.k_mag = back_off(gain_from_tau(st.tau_mag_now, p.ts), e)
+    st.mod.k_mag = back_off(st.k_mag_now, e)
 
 
 @njit(cache=True)
@@ -331,6 +334,7 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
         st.trust_now = lam
         if p.modulation_gain >= 1.0:
             st.tau_acc_now, st.tau_mag_now = tau_acc, tau_mag
+            st.k_mag_now = st.mod.k_mag  # modulate's gain_from_tau(tau_mag), before any back-off
     if p.modulation_gain < 1.0:
         _follow(st, p)
     if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0:
@@ -391,6 +395,7 @@ class VQFTogglingFilter(PredictionDrivenFilter):
         st.ln_tau_acc_target = st.ln_tau_acc_now = math.log(self.settings.tau_acc)
         st.ln_tau_mag_target = st.ln_tau_mag_now = math.log(self.settings.tau_mag)
         st.mag_disturbance_predicted, st.mag_backoff = 0.0, 1.0
+        st.k_mag_now = gain_from_tau(self.settings.tau_mag, self.Ts)
 
     def set_quat(self, q):
         """Set the output orientation (sensor -> ENU) and mark the filter initialised; the core's

@@ -14,9 +14,9 @@ The kernels take named records (``NamedTuple``, compiled to structs): the IMU ``
 ``walk_forest`` walks, training ranges), the ``HeldPrediction`` (the row held between hops and the
 hop's scratch) and the ``Outputs``. They take no function argument, so numba caches them on disk
 like the filters' own steps instead of compiling them again in every process (a function passed as
-an argument, or closed over, is not cached). As every numba cache, a kernel's is keyed on this file's
-source: after editing a filter's step in another file, clear the cache (``__pycache__``) or the old
-step may run on.
+an argument, or closed over, is not cached). numba keys a kernel's cache on its own file only; the
+package keys the cache directory on every source file (``togglecf.__init__``), so editing a filter's
+step in another file compiles the kernels again.
 """
 from __future__ import annotations
 

@@ -363,6 +363,15 @@ def _array_tables(forest) -> tuple:
     return tables, len(order), comment, walk
 
 
+#: trees per block of the complete layout's C walk (``FlatForest.complete`` pads blocks of 8 to one depth)
+_C_BLOCK = 8
+
+
+def _c_level(i: str, base: str) -> str:
+    """One level of the complete layout's walk in C: left (2i+1) when x < threshold, else right (2i+2)."""
+    return f"{i} = 2u * {i} + 2u - (uint32_t)(xs[{{P}}feat[{base} + {i}]] < {{P}}thr[{base} + {i}]);"
+
+
 def _complete_tables(forest) -> tuple:
     """The complete layout (``FlatForest.complete``): as ``_array_tables``."""
     c = forest.complete()  # ValueError: trees too deep, or a threshold the missing-value encoding cannot take
@@ -376,6 +385,16 @@ def _complete_tables(forest) -> tuple:
    xs that holds each feature twice: j where a missing value of feature j goes left (NaN as -inf),
    {F + 1} + j where it goes right (NaN as +inf), {F} a constant 0 for padding (threshold +INFINITY:
    always left). Every step is "left when xs < threshold", without a branch on the data."""
+    depth_blocks = c.depth[:len(c.depth) // _C_BLOCK * _C_BLOCK].reshape(-1, _C_BLOCK)
+    if not np.all(depth_blocks == depth_blocks[:, :1]):
+        raise AssertionError(f"complete(): every block of {_C_BLOCK} trees should share its padded depth")
+    bases = "\n".join(f"    const uint32_t {', '.join(f'b{k} = {{P}}inner[t + {k}]' for k in range(j, j + 4))};"
+                      for j in range(0, _C_BLOCK, 4))
+    zeros = ", ".join(f"i{k} = 0" for k in range(_C_BLOCK))
+    levels = "\n".join(f"      {_c_level(f'i{k}', f'b{k}')}" for k in range(_C_BLOCK))
+    leaves = "".join(f"    acc[{{P}}group[t + {k}]] += {{P}}leaf[{{P}}leaf_at[t + {k}] + i{k} - first];\n"
+                     for k in range(_C_BLOCK))
+    level = _c_level("i", "b")
     walk = f"""  float xs[{2 * F + 2}];
   for (int j = 0; j < {F}; ++j) {{
     float v = x[j];
@@ -384,11 +403,19 @@ def _complete_tables(forest) -> tuple:
   }}
   xs[{F}] = 0.0f;
   xs[{2 * F + 1}] = 0.0f;
-  for (int t = 0; t < {{U}}N_TREES; ++t) {{
-    const {_uint_type(2 * F + 1)} *feat = {{P}}feat + {{P}}inner[t];
-    const float *thr = {{P}}thr + {{P}}inner[t];
-    uint32_t i = 0, depth = {{P}}depth[t];
-    for (uint32_t d = 0; d < depth; ++d) i = 2u * i + 2u - (uint32_t)(xs[feat[i]] < thr[i]);
+  int t = 0;
+  for (; t + {_C_BLOCK} <= {{U}}N_TREES; t += {_C_BLOCK}) {{  /* a block of {_C_BLOCK} trees shares its padded depth */
+    const uint32_t depth = {{P}}depth[t], first = (1u << depth) - 1u;
+{bases}
+    uint32_t {zeros};
+    for (uint32_t d = 0; d < depth; ++d) {{  /* the {_C_BLOCK} walks side by side: their loads overlap */
+{levels}
+    }}
+{leaves}  }}
+  for (; t < {{U}}N_TREES; ++t) {{
+    const uint32_t depth = {{P}}depth[t], b = {{P}}inner[t];
+    uint32_t i = 0;
+    for (uint32_t d = 0; d < depth; ++d) {level}
     acc[{{P}}group[t]] += {{P}}leaf[{{P}}leaf_at[t] + i - ((1u << depth) - 1u)];
   }}"""
     return tables, len(c.feature) + len(c.value), comment, walk

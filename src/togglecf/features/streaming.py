@@ -83,19 +83,19 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     # the field reference starts at the first usable sample, before its deviations
     aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mag_reference_start(
         aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2], mn, dip)
-    row = ring[pos]
-    row[0], row[1], row[2] = gx, gy, gz
-    row[3] = math.sqrt(gn2)
-    row[4], row[5], row[6] = ax, ay, az
-    row[7] = an - g
-    row[8] = jerk
-    row[9] = mn - aux[2]  # uses r_{k-1}
-    row[10] = dip - aux[3]
-    row[11] = gn2
+    # indexed in place (a row view costs a reference count per sample)
+    ring[pos, 0], ring[pos, 1], ring[pos, 2] = gx, gy, gz
+    ring[pos, 3] = math.sqrt(gn2)
+    ring[pos, 4], ring[pos, 5], ring[pos, 6] = ax, ay, az
+    ring[pos, 7] = an - g
+    ring[pos, 8] = jerk
+    ring[pos, 9] = mn - aux[2]  # uses r_{k-1}
+    ring[pos, 10] = dip - aux[3]
+    ring[pos, 11] = gn2
     hp0, hp1, hp2 = ax - aux[4], ay - aux[5], az - aux[6]
     for j in range(last_src.shape[0]):
         s = last_src[j]
-        aux[AUX_LAST + j] = row[s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
+        aux[AUX_LAST + j] = ring[pos, s] if s >= 0 else (hp0 if s == -1 else (hp1 if s == -2 else hp2))
     # update the field reference with sample k (only from usable samples)
     aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2] = mag_reference_step(
         aux[2], aux[3], aux[AUX_CAND], aux[AUX_CAND + 1], aux[AUX_CAND + 2], mn, dip, gn2, params)
@@ -108,7 +108,7 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
             aux[4], aux[5], aux[6] = ax, ay, az
     aux[7], aux[8], aux[9] = ax, ay, az  # jerk next to a bad sample is missing, as in features
     aux[0] = count + 1
-    aux[1] = (pos + 1) % L
+    aux[1] = pos + 1 if pos + 1 < L else 0  # (pos + 1) mod L without a division
 
 
 @njit(cache=True)

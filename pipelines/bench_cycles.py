@@ -5,9 +5,11 @@ emulator, not a measurement on the hardware (``togglecf.embedded.cycles``).
                                      [--clock-mhz 168] [--data DIR] [--out PATH]
 
 Each filter is exported as ``togglecf export`` writes it (the VQF core ``tcf_vqf.c`` 9D and 6D; the
-learned VQF ``tcf_vqf_toggling.c`` with the pretrained model, and with a trained model directory's
-trees in the loop, in the default array layout and in the complete one (``--forest-layout``); the
-toggling CF ``tcf_filter.c``), compiled with ``arm-none-eabi-gcc`` for the
+learned VQF ``tcf_vqf_toggling.c`` with the pretrained model (learning off: the core alone), with the
+pretrained model's trees and learning on (``bench_learned_vqf.learning_on_model``: its 240 class
+trees every 0.1 s, the size ``togglecf train --from-pretrained`` makes), and with a trained model
+directory's trees in the loop, in the default array layout and in the complete one
+(``--forest-layout``); the toggling CF ``tcf_filter.c``), compiled with ``arm-none-eabi-gcc`` for the
 Cortex-M4F (``-mcpu=cortex-m4 -mthumb -mfpu=fpv4-sp-d16 -mfloat-abi=hard``, at each ``--opt``),
 linked bare-metal with newlib's libm, and run one update per sample on the first ``--samples`` of a
 BROAD trial in the emulator (unicorn), which counts the executed instructions; the cycles are
@@ -19,7 +21,7 @@ Full run: trial 21, 2000 samples, -O2 and -Os, table in ``reports/bench/bench_cy
 without ``--models`` a small model directory (10 + 10 trees of depth 4, small gain grids) is trained
 first on four BROAD trials (about a minute), so the trees run in the loop. ``--quick``: 200 samples of
 the mini trial 07, -O2, the VQF core and the pretrained learned VQF (plus the trained filters with
-``--models``). Needs the ARM cross compiler and the ``embedded`` extra (unicorn, capstone).
+``--models``; not the learning-on row). Needs the ARM cross compiler and the ``embedded`` extra (unicorn, capstone).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_common import add_common_args, data_dir, finish
+from bench_learned_vqf import LEARNED_TAU_ACC, learning_on_model
 
 from togglecf.core import quaternion as quat
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
@@ -37,6 +40,9 @@ from togglecf.embedded import cfilter, cvqf, cvqf_toggling, cycles
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
 from togglecf.toggling.pretrained import PRETRAINED_FILE
+
+#: the learning-on row's settings, as bench_learned_vqf's
+LEARNING_ON = f"τ_acc per state {LEARNED_TAU_ACC[0]:g} to {LEARNED_TAU_ACC[1]:g} s"
 
 NAME = "bench_cycles"
 DEFAULT_TRIAL = "21_undisturbed_fast_combined"
@@ -60,8 +66,9 @@ def small_models(data, out) -> Path:
     return Path(out)
 
 
-def filter_specs(models):
-    """``[(label, export(out_dir, fs) -> None, CSourceSet, includes, use_mag, host(out_dir, g, a, m, fs) -> quat)]``."""
+def filter_specs(models, learning_on_file=None):
+    """``[(label, export(out_dir, fs) -> None, CSourceSet, includes, use_mag, host(out_dir, g, a, m, fs) -> quat)]``;
+    ``learning_on_file``: the shipped models with learning on (``bench_learned_vqf.learning_on_model``), or None."""
     def vqf_core(use_mag):
         return (lambda d, fs: cvqf.export_c_vqf(d, fs, use_mag=use_mag, sizes=False), cvqf.C_VQF,
                 ("tcf_vqf_config.h",), use_mag,
@@ -75,6 +82,9 @@ def filter_specs(models):
 
     specs = [("VQF core 9D (tcf_vqf.c)", *vqf_core(True)), ("VQF core 6D (tcf_vqf.c)", *vqf_core(False)),
              ("learned VQF 9D, pretrained model", *learned_vqf(PRETRAINED_FILE))]
+    if learning_on_file is not None:
+        specs.append((f"learned VQF 9D, the pretrained model's trees, learning on ({LEARNING_ON})",
+                      *learned_vqf(learning_on_file)))
     if models is not None:
         specs.append(("learned VQF 9D, trained model (trees in the loop)", *learned_vqf(models)))
         specs.append(("learned VQF 9D, trained model, trees in the complete layout",
@@ -151,10 +161,12 @@ def main(argv=None) -> dict:
     rows, ratios = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         models = args.models or (None if args.quick else str(small_models(data, Path(tmp) / "models")))
+        on_file = None if args.quick else learning_on_model(Path(tmp) / "learning_on.npz")
         work = Path(tmp) / "exports"
         work.mkdir()
         for opt in opts:
-            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz) for spec in filter_specs(models)]
+            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz)
+                     for spec in filter_specs(models, on_file)]
             vqf_cycles = block[0]["cycles_mean_exact"]  # the VQF core 9D, first of filter_specs
             for r in block:
                 key = f"{r['filter']} {opt}"

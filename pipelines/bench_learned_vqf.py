@@ -134,14 +134,20 @@ def prediction_rows(f, out) -> np.ndarray:
     return np.stack([out.diagnostics[k] for k in f.layout.names(f.models.class_names)], axis=1)
 
 
+def learning_on_model(path: Path) -> Path:
+    """The shipped models with the learning-on settings (``learning_on``, 9D) as a portable model file at
+    ``path``: what ``export_c_vqf_toggling`` exports with the trees in the loop (also ``bench_cycles.py``)."""
+    pm = load_pretrained()
+    on = dataclasses.asdict(learning_on(pretrained_settings(True), False))
+    gains = {**pm.gains, mode_name("vqf_toggling", True): on}
+    return save_portable(path, pm.models, gains, {"note": "bench_learned_vqf: learning on"})
+
+
 def c_harnesses(tmp: Path, fs: float) -> dict:
     """Row name -> compiled harness of the C export (learning on, shipped); {} without gcc."""
     if shutil.which("gcc") is None:
         return {}
-    pm = load_pretrained()
-    on = dataclasses.asdict(learning_on(pretrained_settings(True), False))
-    gains = {**pm.gains, mode_name("vqf_toggling", True): on}
-    on_file = save_portable(tmp / "learning_on.npz", pm.models, gains, {"note": "bench_learned_vqf"})
+    on_file = learning_on_model(tmp / "learning_on.npz")
     out = {}
     for i, (key, path, layout) in enumerate(((C_TAU, on_file, "array"), (C_TAU_COMPLETE, on_file, "complete"),
                                              (C_OFF, PRETRAINED_FILE, "array"))):

@@ -116,7 +116,19 @@ def measure_row(spec, opt, tmp: Path, g, a, m, fs, clock_hz) -> dict:
             "load_285.7_mean_pct": f"{100 * s['load_285.7_mean']:.2f}",
             "load_285.7_max_pct": f"{100 * s['load_285.7_max']:.2f}",
             "load_100_mean_pct": f"{100 * s['load_100_mean']:.2f}", "max_angle_deg": f"{angle:.1e}",
-            "cycles_mean_exact": s["cycles_mean"]}
+            "cycles_mean_exact": s["cycles_mean"], "per_function": meas.per_function}
+
+
+def where_cycles_go(row: dict, smallest: float = 0.02) -> str:
+    """One note line: the shares of ``row``'s cycles by function (``Measurement.per_function``; code the
+    compiler inlined counts as its caller's), those under ``smallest`` summed as "other"."""
+    per = row["per_function"]
+    total = sum(per.values())
+    big = sorted(((v / total, k) for k, v in per.items() if v / total >= smallest), reverse=True)
+    other = 1.0 - sum(f for f, _ in big)
+    parts = [f"`{k}` {100 * f:.0f} %" for f, k in big] + [f"other {100 * other:.0f} %"]
+    return (f"Where the cycles of *{row['filter']}* at {row['opt']} go, by function (inlined code counts as "
+            f"its caller's; libm's functions as themselves): {', '.join(parts)}.")
 
 
 def notes(t, n, start, clock_mhz, models, args) -> list:
@@ -164,17 +176,23 @@ def main(argv=None) -> dict:
         on_file = None if args.quick else learning_on_model(Path(tmp) / "learning_on.npz")
         work = Path(tmp) / "exports"
         work.mkdir()
+        specs = filter_specs(models, on_file)
         for opt in opts:
-            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz)
-                     for spec in filter_specs(models, on_file)]
+            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz) for spec in specs]
             vqf_cycles = block[0]["cycles_mean_exact"]  # the VQF core 9D, first of filter_specs
             for r in block:
                 key = f"{r['filter']} {opt}"
                 ratios[key] = r.pop("cycles_mean_exact") / vqf_cycles
                 r["ratio_to_vqf"] = f"{ratios[key]:.2f}"
             rows += block
+        # the most learned row of the first -O level: the shipped-size trees with learning on, else the last
+        profiled = next((r for r in rows if "learning on" in r["filter"]), rows[len(specs) - 1])
+        where = where_cycles_go(profiled)
+        print(where)
+        for r in rows:
+            del r["per_function"]
         return finish(NAME, args, rows, COLUMNS, "Cycles per sample of the C filters on a Cortex-M4F (estimate)",
-                      notes(t, n, args.start, args.clock_mhz, models, args), digits=4, ratios=ratios)
+                      [*notes(t, n, args.start, args.clock_mhz, models, args), where], digits=4, ratios=ratios)
 
 
 if __name__ == "__main__":

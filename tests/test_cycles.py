@@ -79,6 +79,47 @@ def test_counter_on_a_known_function(tmp_path):
     assert cycles.CycleCounter(elf, cycles.CycleModel(refill=1)).call("tcf_known") == (38, 68, 10)
 
 
+CALLING_ASM = """
+  .syntax unified
+  .thumb
+  .text
+  .global tcf_outer
+  .thumb_func
+tcf_outer:
+  push {r4, lr}
+  movs r4, #3
+  bl tcf_inner
+  adds r0, r4
+  pop {r4, pc}
+  .global tcf_inner
+  .thumb_func
+tcf_inner:
+  movs r0, #1
+  adds r0, #1
+  bx lr
+"""
+
+
+@needs_emulator
+def test_counter_attributes_cycles_to_functions(tmp_path):
+    """``per_function``: every cycle of a call goes to the function whose code ran it, the final return
+    included: the sum is the call's count, and the callee gets what a call of it alone counts (the ``bl``
+    into it, priced with its refill, is the caller's instruction)."""
+    src, script, elf = tmp_path / "c.s", tmp_path / "c.ld", tmp_path / "c.elf"
+    src.write_text(CALLING_ASM)
+    script.write_text(cycles.LINKER_SCRIPT)
+    subprocess.run([ARM_GCC, *ARM_FLAGS, "-nostartfiles", "-nostdlib", "-T", str(script), str(src), "-o", str(elf)],
+                   check=True, capture_output=True)
+    counter = cycles.CycleCounter(elf)
+    _, alone, _ = counter.call("tcf_inner")
+    counter.per_function.clear()
+    _, total, _ = counter.call("tcf_outer")
+    assert counter.result == 5
+    assert set(counter.per_function) == {"tcf_outer", "tcf_inner"}
+    assert sum(counter.per_function.values()) == total
+    assert counter.per_function["tcf_inner"] == alone
+
+
 @needs_emulator
 def test_emulated_vqf_core_matches_its_host_build(tmp_path, rng):
     n, fs = 60, 285.7
@@ -95,6 +136,8 @@ def test_emulated_vqf_core_matches_its_host_build(tmp_path, rng):
     s = cycles.summarize(meas, 168e6)
     assert s["cycles_low_mean"] <= s["cycles_mean"] <= s["cycles_high_mean"]
     assert s["load_100_mean"] == pytest.approx(s["cycles_mean"] / 1.68e6)
+    assert sum(meas.per_function.values()) == meas.cycles.sum()
+    assert any(name.startswith("tcf_vqf_update") for name in meas.per_function)
 
 
 @needs_emulator

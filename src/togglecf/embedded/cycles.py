@@ -23,9 +23,11 @@ the emulated build against the host build), and the cycles of the init.
 """
 from __future__ import annotations
 
+import bisect
 import re
 import shutil
 import tempfile
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -123,6 +125,9 @@ class Measurement:
     init_cycles: int
     model: CycleModel
     unknown: set = field(default_factory=set)
+    #: cycles of the per-sample updates by the function they ran in (the symbol at or below each basic
+    #: block: a function the compiler inlined counts as its caller's; libm's functions as themselves)
+    per_function: dict = field(default_factory=dict)
 
 
 def missing_reason() -> str | None:
@@ -292,6 +297,11 @@ class CycleCounter:
         cs = require("capstone", "embedded", "the Cortex-M4F cycle estimate")
         self.model = model or CycleModel()
         self.symbols = self._symbols(Path(elf))
+        # code symbols by address, to attribute each block's cycles to its function (per_function)
+        code = sorted((a & ~1, n) for n, a in self._symbols(Path(elf), "tTW").items())
+        self._code_starts, self._code_names = [a for a, _ in code], [n for _, n in code]
+        self._block_function: dict = {}
+        self.per_function: Counter = Counter()
         with tempfile.TemporaryDirectory() as tmp:
             flat = Path(tmp) / "image.bin"
             run_command([_tool("objcopy"), "-O", "binary", elf, flat])
@@ -315,13 +325,18 @@ class CycleCounter:
         self.mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block)
 
     @staticmethod
-    def _symbols(elf: Path) -> dict:
+    def _symbols(elf: Path, types: str = "") -> dict:
+        """name -> address of the ELF's symbols (``types``: only those of these ``nm`` types; "" all)."""
         out = {}
         for line in run_command([_tool("nm"), elf]).splitlines():
             parts = line.split()
-            if len(parts) == 3:
+            if len(parts) == 3 and (not types or parts[1] in types):
                 out[parts[2]] = int(parts[0], 16)
         return out
+
+    def _function_of(self, address: int) -> str:
+        i = bisect.bisect_right(self._code_starts, address) - 1
+        return self._code_names[i] if i >= 0 else "?"
 
     def address(self, name: str) -> int:
         """The address of the global ``name`` (a function's without the Thumb bit)."""
@@ -346,11 +361,17 @@ class CycleCounter:
             return
         cost = self._blocks.get((address, size)) or self._price(address, size)
         counts = self._counts
+        cycles = cost.cycles
         if self._branch_end is not None and address != self._branch_end:
-            counts[1] += self.model.refill
+            cycles += self.model.refill  # the branch into this block was taken
             counts[2] += 1
         counts[0] += cost.instructions
-        counts[1] += cost.cycles
+        counts[1] += cycles
+        name = self._block_function.get(address)
+        if name is None:
+            name = self._block_function[address] = self._function_of(address)
+        self.per_function[name] += cycles
+        self._last_function = name
         self._branch_end = address + size if cost.ends_in_branch else None
 
     def call(self, name: str, max_instructions: int = 0) -> tuple:
@@ -368,6 +389,7 @@ class CycleCounter:
         if self._branch_end is not None:  # the return itself: a taken branch
             self._counts[1] += self.model.refill
             self._counts[2] += 1
+            self.per_function[self._last_function] += self.model.refill
         r0 = self.mu.reg_read(arm.UC_ARM_REG_R0)
         self.result = r0 - (1 << 32) if r0 >= 1 << 31 else r0
         return tuple(self._counts)
@@ -398,6 +420,7 @@ def measure_filter(out_dir, sources: CSourceSet, gyr, acc, mag, fs: float, *, op
     init = counter.call("tcf_bench_init")
     if counter.result != 0:
         raise RuntimeError(f"{sources.what}: the init returned {counter.result} in the emulator")
+    per_function = Counter()  # the updates' cycles only (not the init's nor the quaternion reads')
     n = len(gyr)
     inputs = np.zeros((n, 10), np.float32)
     inputs[:, 0:3], inputs[:, 3:6] = gyr, acc
@@ -409,12 +432,14 @@ def measure_filter(out_dir, sources: CSourceSet, gyr, acc, mag, fs: float, *, op
     quat = np.zeros((n, 4))
     for i in range(n):
         counter.write_floats("tcf_in", inputs[i])
+        counter.per_function.clear()
         counts[i] = counter.call("tcf_bench_step")
+        per_function.update(counter.per_function)
         counter.call("tcf_bench_quat")
         quat[i] = counter.read_floats("tcf_q", 4)
     return Measurement(instructions=counts[:, 0], cycles=counts[:, 1], taken=counts[:, 2], quat=quat,
                        init_instructions=int(init[0]), init_cycles=int(init[1]), model=counter.model,
-                       unknown=set(counter.unknown))
+                       unknown=set(counter.unknown), per_function=dict(per_function))
 
 
 def summarize(m: Measurement, clock_hz: float, rates=(285.7, 100.0)) -> dict:

@@ -65,13 +65,19 @@ def test_neighbouring_loads_pipeline():
     assert (cost.instructions, cost.cycles, cost.ends_in_branch) == (5, 2 + 1 + 1 + 1 + 2, False)
 
 
-@needs_emulator
-def test_counter_on_a_known_function(tmp_path):
+def _linked(tmp_path, asm: str):
+    """The bare-metal image of the assembly ``asm`` (linked at ``cycles.CODE_BASE``)."""
     src, script, elf = tmp_path / "k.s", tmp_path / "k.ld", tmp_path / "k.elf"
-    src.write_text(KNOWN_ASM)
+    src.write_text(asm)
     script.write_text(cycles.LINKER_SCRIPT)
     subprocess.run([ARM_GCC, *ARM_FLAGS, "-nostartfiles", "-nostdlib", "-T", str(script), str(src), "-o", str(elf)],
                    check=True, capture_output=True)
+    return elf
+
+
+@needs_emulator
+def test_counter_on_a_known_function(tmp_path):
+    elf = _linked(tmp_path, KNOWN_ASM)
     counter = cycles.CycleCounter(elf)
     assert counter.call("tcf_known") == (38, 78, 10)
     assert counter.result == 10 and not counter.unknown
@@ -105,12 +111,7 @@ def test_counter_attributes_cycles_to_functions(tmp_path):
     """``per_function``: every cycle of a call goes to the function whose code ran it, the final return
     included: the sum is the call's count, and the callee gets what a call of it alone counts (the ``bl``
     into it, priced with its refill, is the caller's instruction)."""
-    src, script, elf = tmp_path / "c.s", tmp_path / "c.ld", tmp_path / "c.elf"
-    src.write_text(CALLING_ASM)
-    script.write_text(cycles.LINKER_SCRIPT)
-    subprocess.run([ARM_GCC, *ARM_FLAGS, "-nostartfiles", "-nostdlib", "-T", str(script), str(src), "-o", str(elf)],
-                   check=True, capture_output=True)
-    counter = cycles.CycleCounter(elf)
+    counter = cycles.CycleCounter(_linked(tmp_path, CALLING_ASM))
     _, alone, _ = counter.call("tcf_inner")
     counter.per_function.clear()
     _, total, _ = counter.call("tcf_outer")

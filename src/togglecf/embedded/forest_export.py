@@ -374,7 +374,11 @@ def _c_level(i: str, base: str) -> str:
 
 def _complete_tables(forest) -> tuple:
     """The complete layout (``FlatForest.complete``): as ``_array_tables``."""
-    c = forest.complete()  # ValueError: trees too deep, or a threshold the missing-value encoding cannot take
+    try:
+        c = forest.complete()
+    except ValueError as e:  # trees too deep, or a threshold the missing-value encoding cannot take
+        raise ValueError(f"the complete layout cannot hold these trees ({e}): use the array layout "
+                         "(--forest-layout array)") from None
     F = forest.n_features
     tables = [(_uint_type(2 * F + 1), "feat", c.feature, str), ("float", "thr", c.threshold, _c_threshold),
               ("float", "leaf", c.value, c_float), (_uint_type(len(c.feature)), "inner", c.inner_offset, str),

@@ -151,3 +151,24 @@ def test_held_out_skill(cv_run):
     assert overall["acc"]["r2"] > 0.0
     assert overall["acc"]["rmse"] < overall["acc_zero"]["rmse"]
 
+
+
+@pytest.mark.parametrize("earlier", ["another run's modes", "a damaged file"])
+def test_training_replaces_an_earlier_gains_file(mini_index, tmp_path, earlier):
+    """Training into a directory that holds an earlier ``gains.json``: the new file has this run's modes
+    only (a mode of the earlier run beside the new models would pass their schema check with settings
+    learned for other models), and a damaged earlier file does not stop the run."""
+    import tomllib
+
+    from conftest import TINY_TRAIN_TOML
+
+    out = tmp_path / "models"
+    out.mkdir()
+    stale = {"format": 2, "feature_schema_hash": "x", "vqf_6d": {"filter": "vqf_toggling", "settings": {}}}
+    (out / "gains.json").write_text(json.dumps(stale) if earlier == "another run's modes" else "{ not json")
+    cfg = load_config(tomllib.loads(TINY_TRAIN_TOML))
+    cfg["gains"]["modes"] = ["9d"]
+    run_training(cfg, data_dir=mini_index.root, trials="02,07,24", out=out, cv=False, verbose=False)
+    gains = json.loads((out / "gains.json").read_text())
+    assert {k for k in gains if k in ("9d", "6d", "vqf_9d", "vqf_6d")} == {"9d"}
+    assert gains["feature_schema_hash"] == json.loads((out / "metadata.json").read_text())["feature_schema"]["hash"]

@@ -32,7 +32,7 @@ from togglecf.learn.models import save_bundle
 from togglecf.learn.ranges import feature_ranges
 from togglecf.parallel.backend import InlineBackend, make_backend
 from togglecf.run.config import GAIN_KEYS, load_config
-from togglecf.toggling.gains import GainSearch, VQFGainSearch, learn_and_save_gains
+from togglecf.toggling.gains import GAINS_FILE, GainSearch, VQFGainSearch, learn_and_save_gains
 
 sklearn = deferred("sklearn", extra="train", what="togglecf training (togglecf.run.train)")
 xgboost = deferred("xgboost", extra="train", what="togglecf training (togglecf.run.train)")
@@ -118,9 +118,13 @@ def _data_dir_meta(index):
 
 
 def _write_models(out_dir: Path, clf, regs: dict, metadata: dict, schema, cv, class_names) -> CompiledModels:
-    """The fitted models, their importances and the CV table (``cv``: ``None`` without CV) into ``out_dir``;
-    returns the models as the directory reads back (``CompiledModels.stored``), flattened once."""
+    """The fitted models, their importances and the CV table (``cv``: ``None`` without CV) into ``out_dir``
+    (an earlier ``gains.json`` removed); returns the models as the directory reads back
+    (``CompiledModels.stored``), flattened once."""
     models = CompiledModels.from_fitted(clf, regs, metadata)
+    # an earlier run's gains.json belongs to its models: removed, so that none of its modes survives beside
+    # these (``save_gains`` adds each mode of this run to the file) and a damaged one cannot stop the run
+    (out_dir / GAINS_FILE).unlink(missing_ok=True)
     save_bundle(out_dir, clf, regs, metadata, forest=models.forest)
     atomic_write_text(out_dir / "feature_importances.csv", importances_csv(clf, regs, schema))
     if cv is not None:

@@ -296,12 +296,14 @@ class CycleCounter:
         arm = require("unicorn.arm_const", "embedded", "the Cortex-M4F cycle estimate")
         cs = require("capstone", "embedded", "the Cortex-M4F cycle estimate")
         self.model = model or CycleModel()
-        self.symbols = self._symbols(Path(elf))
+        table = self._symbols(Path(elf))
+        self.symbols = {name: address for name, (address, _) in table.items()}
         # code symbols by address, to attribute each block's cycles to its function (per_function)
-        code = sorted((a & ~1, n) for n, a in self._symbols(Path(elf), "tTW").items())
+        code = sorted((address & ~1, name) for name, (address, kind) in table.items() if kind in "tTW")
         self._code_starts, self._code_names = [a for a, _ in code], [n for _, n in code]
         self._block_function: dict = {}
         self.per_function: Counter = Counter()
+        self._last_function = "?"  # of the last block run (the final return's refill is its)
         with tempfile.TemporaryDirectory() as tmp:
             flat = Path(tmp) / "image.bin"
             run_command([_tool("objcopy"), "-O", "binary", elf, flat])
@@ -325,13 +327,13 @@ class CycleCounter:
         self.mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block)
 
     @staticmethod
-    def _symbols(elf: Path, types: str = "") -> dict:
-        """name -> address of the ELF's symbols (``types``: only those of these ``nm`` types; "" all)."""
+    def _symbols(elf: Path) -> dict:
+        """name -> (address, ``nm`` type letter) of the ELF's symbols."""
         out = {}
         for line in run_command([_tool("nm"), elf]).splitlines():
             parts = line.split()
-            if len(parts) == 3 and (not types or parts[1] in types):
-                out[parts[2]] = int(parts[0], 16)
+            if len(parts) == 3:
+                out[parts[2]] = (int(parts[0], 16), parts[1])
         return out
 
     def _function_of(self, address: int) -> str:

@@ -395,7 +395,7 @@ class VQFTogglingFilter(PredictionDrivenFilter):
         st.ln_tau_acc_target = st.ln_tau_acc_now = math.log(self.settings.tau_acc)
         st.ln_tau_mag_target = st.ln_tau_mag_now = math.log(self.settings.tau_mag)
         st.mag_disturbance_predicted, st.mag_backoff = 0.0, 1.0
-        st.k_mag_now = gain_from_tau(self.settings.tau_mag, self.Ts)
+        st.k_mag_now = st.mod.k_mag  # the core's own, before any back-off
 
     def set_quat(self, q):
         """Set the output orientation (sensor -> ENU) and mark the filter initialised; the core's

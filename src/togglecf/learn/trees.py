@@ -378,7 +378,7 @@ def predict_margin_row(x, forest, out):
 
 
 #: the walk's indices are unsigned: numba checks every signed index for a negative (wraparound) value,
-#: a compare and a select in each level's dependency chain (a third of predict_margin_row_complete's time)
+#: a compare and a select in each level's dependency chain
 _U = np.uint64
 
 

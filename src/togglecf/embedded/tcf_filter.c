@@ -163,6 +163,26 @@ static float tcf_rate_bounded_gain(float alpha, const float v[3], const float m[
   return tan_step * vv / denominator;
 }
 
+/* Step 5's follow (turn_as): w turned in place by the shortest-arc rotation that takes u's direction to v's
+   (Rodrigues, k = u^ x v^, c = u^ . v^: R w = c w + k x w + k (k . w) / (1 + c)); unchanged where u or v
+   is zero or not finite, or where they are 90 degrees or more apart. */
+static void tcf_turn_as(const float u[3], const float v[3], float w[3]) {
+  float nu = sqrtf(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+  float nv = sqrtf(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+  float ux, uy, uz, vx, vy, vz, c, kx, ky, kz, kw, w0, w1, w2;
+  if (!(nu > 0.0f && nv > 0.0f && isfinite(nu) && isfinite(nv))) return;
+  ux = u[0] / nu; uy = u[1] / nu; uz = u[2] / nu;
+  vx = v[0] / nv; vy = v[1] / nv; vz = v[2] / nv;
+  c = ux * vx + uy * vy + uz * vz;
+  if (!(c > 0.0f)) return;
+  kx = uy * vz - uz * vy; ky = uz * vx - ux * vz; kz = ux * vy - uy * vx;
+  kw = (kx * w[0] + ky * w[1] + kz * w[2]) / (1.0f + c);
+  w0 = c * w[0] + ky * w[2] - kz * w[1] + kw * kx;
+  w1 = c * w[1] + kz * w[0] - kx * w[2] + kw * ky;
+  w2 = c * w[2] + kx * w[1] - ky * w[0] + kw * kz;
+  w[0] = w0; w[1] = w1; w[2] = w2;
+}
+
 /* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
    VQF's blend in tcf_vqf_toggling.c; prediction.py's docstring says why): TCF_LEARNED when the
    probabilities are valid and max p >= c0 sum p, else TCF_NO_PREDICTION / TCF_LOW_CONFIDENCE. */
@@ -245,7 +265,11 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     tcf_q_rotate(dq, 1, f->m_pred, f->m_pred);
   }
   if (acc_ok) {  /* step 5: vector CF step */
-    for (j = 0; j < 3; ++j) f->a_pred[j] = (1.0f - alpha_a) * f->a_pred[j] + alpha_a * a_d[j];
+    float a_corrected[3];
+    for (j = 0; j < 3; ++j) a_corrected[j] = (1.0f - alpha_a) * f->a_pred[j] + alpha_a * a_d[j];
+    if (TCF_USE_MAG) tcf_turn_as(f->a_pred, a_corrected, f->m_pred);  /* the tilt correction turns the frame:
+                                                                        * the field follows */
+    for (j = 0; j < 3; ++j) f->a_pred[j] = a_corrected[j];
     f->alpha_acc = alpha_a;
   }
   if (mag_ok) {  /* the heading correction turns m_pred at most TCF_MAG_RATE_LIMIT */

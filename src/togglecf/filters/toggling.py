@@ -27,8 +27,13 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    fixed CF's τ: the out-of-fold predictions the gains are learned on fall back mostly on
    disturbed windows, where a fast correction follows the disturbance (docs/concepts/
    toggling-filter.md gives the measurement).
-5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d,   m_pred likewise with α_m,
-   lowered where needed so that the step turns m_pred by at most ω_m Ts (``mag_rate_limit`` ω_m
+5. vector CF step           a_pred ← (1 − α_a) a_pred + α_a a_d; the field **follows** (9D): m_pred ← R m_pred
+   with R the shortest-arc rotation from the old a_pred's direction to the new one (``turn_as``), since
+   a tilt correction turns the estimated frame, not the gravity direction alone (as VQF's and Mahony's
+   corrections rotate the orientation). Without it a tilt correction changes the angle between a_pred
+   and m_pred, and step 6's heading (m_pred's horizontal part) by up to tan(dip) times the tilt step:
+   the accelerometer's disturbances in fast motion leak into the heading. Then m_pred ← (1 − α_m)
+   m_pred + α_m m_d, with α_m lowered where needed so that the step turns m_pred by at most ω_m Ts (``mag_rate_limit`` ω_m
    [rad/s]; 0: no bound): the heading correction moves at most ω_m, however large the error, as
    Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
    heading by at most ω_m times its duration, while small errors still decay with τ_mag
@@ -90,6 +95,7 @@ __all__ = [
     "TogglingSettings",
     "rate_bounded_gain",
     "toggle_step",
+    "turn_as",
 ]
 
 _STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
@@ -240,6 +246,29 @@ def rate_bounded_gain(alpha, v_pred, v_meas, tan_step):
     return tan_step * vv / denominator
 
 
+@njit(cache=True, inline="always")
+def turn_as(u, v, w):
+    """``w`` turned by the shortest-arc rotation that takes the direction of ``u`` to that of ``v`` (any
+    lengths; Rodrigues' formula with k = û × v̂, c = û · v̂: R w = c w + k × w + k (k · w) / (1 + c)).
+    ``w`` unchanged where u or v is zero or non-finite, or where they are 90° or more apart: a step of
+    a_pred that large is no small tilt correction (τ_acc = 0 with a flipped accelerometer), and the
+    rotation's axis is ill-defined near 180°."""
+    nu = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    nv = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if not (nu > 0.0 and nv > 0.0 and math.isfinite(nu) and math.isfinite(nv)):
+        return w
+    ux, uy, uz = u[0] / nu, u[1] / nu, u[2] / nu
+    vx, vy, vz = v[0] / nv, v[1] / nv, v[2] / nv
+    c = ux * vx + uy * vy + uz * vz
+    if not c > 0.0:
+        return w
+    kx, ky, kz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    kw = (kx * w[0] + ky * w[1] + kz * w[2]) / (1.0 + c)
+    return (c * w[0] + ky * w[2] - kz * w[1] + kw * kx,
+            c * w[1] + kz * w[0] - kx * w[2] + kw * ky,
+            c * w[2] + kx * w[1] - ky * w[0] + kw * kz)
+
+
 @njit(cache=True)
 def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm,
@@ -293,8 +322,11 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
         a_pred = rotate_inverse_scalar(dq, a_pred)
         m_pred = rotate_inverse_scalar(dq, m_pred)
     if acc_ok:  # step 5
-        a_pred = ((1.0 - alpha_a) * a_pred[0] + alpha_a * a_d[0], (1.0 - alpha_a) * a_pred[1] + alpha_a * a_d[1],
-                  (1.0 - alpha_a) * a_pred[2] + alpha_a * a_d[2])
+        a_corrected = ((1.0 - alpha_a) * a_pred[0] + alpha_a * a_d[0], (1.0 - alpha_a) * a_pred[1] + alpha_a * a_d[1],
+                       (1.0 - alpha_a) * a_pred[2] + alpha_a * a_d[2])
+        if use_mag:  # the tilt correction turns the whole frame: the field follows (step 5, "follows")
+            m_pred = turn_as(a_pred, a_corrected, m_pred)
+        a_pred = a_corrected
         diag[0] = alpha_a
     if mag_ok:
         alpha_m = rate_bounded_gain(alpha_m, m_pred, m_d, params.tan_mag_step)

@@ -33,6 +33,18 @@ def test_both_searches_keep_a_step_by_one_standard_error_and_sigma_m_from_10_uT(
     assert 0.0 in search.mag_disturbance_scale  # the back-off can stay off
 
 
+RATE_FLOOR = 0.02  # rad/s, about 1 °/s: a consumer gyroscope's bias, which the toggling CF learns only at rest
+
+
+@pytest.mark.parametrize("which", ["config", "defaults"])
+def test_the_heading_rate_bound_is_never_below_a_consumer_gyroscopes_bias(which):
+    """A bound below the gyro bias left in motion cannot hold the heading against it: the grid has 0 (no
+    bound) and values from 0.02 rad/s."""
+    grid = _searches()[which].mag_rate_limit
+    assert 0.0 in grid
+    assert all(v == 0.0 or v >= RATE_FLOOR for v in grid), grid
+
+
 def test_the_search_starts_with_the_back_off_off_and_bounded():
     start = GainSearch().start(("rest", "dynamic"), "rest")
     assert start.mag_disturbance_scale == 0.0

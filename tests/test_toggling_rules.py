@@ -1,9 +1,12 @@
 """The toggling CF learns with the learned VQF's rules for learning that does no harm off its training
 data: a step of its gain search is kept by the one-standard-error rule, σ_m is no smaller than a
 consumer magnetometer's calibration residual, and its magnetometer back-off is bounded by the
-rejection factor (the heading gain never below α_m / f_reject)."""
+rejection factor (the heading gain never below α_m / f_reject). Its heading correction's rate bound is
+never below a consumer gyroscope's bias and acts as Madgwick's β does; its predicted field follows the
+tilt correction, so a tilt step leaves the heading alone."""
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from togglecf import simulate as sim
 from togglecf.core import quaternion as quat
@@ -12,7 +15,6 @@ from togglecf.filters.toggling import TogglingFilter, TogglingSettings, rate_bou
 from togglecf.metrics.broad import error_angles_rad, error_quaternion
 from togglecf.run.config import GAIN_KEYS, load_config
 from togglecf.toggling.gains import GainSearch, VQFGainSearch
-from scipy.spatial.transform import Rotation
 
 FS = 100.0
 SIGMA_FLOOR = 10.0  # µT: a consumer magnetometer's calibration residual is a few µT

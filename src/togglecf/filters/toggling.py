@@ -34,8 +34,8 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    and m_pred, and step 6's heading (m_pred's horizontal part) by up to tan(dip) times the tilt step:
    the accelerometer's disturbances in fast motion leak into the heading. Then m_pred ← (1 − α_m)
    m_pred + α_m m_d, with α_m lowered where needed so that the step turns m_pred by at most ω_m Ts
-   (``mag_rate_limit`` ω_m [rad/s]; 0: no bound): the heading correction moves at most ω_m, however large the error, as
-   Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
+   (``mag_rate_limit`` ω_m [rad/s]; 0: no bound): the heading correction moves at most ω_m, however
+   large the error, as Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
    heading by at most ω_m times its duration, while small errors still decay with τ_mag
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)

@@ -1,9 +1,11 @@
 """Models: schema checks, leakage-free CV by trial, determinism (on the shipped mini BROAD cuts),
 held-out skill on real trials (the full BROAD)."""
 import json
+import tomllib
 
 import numpy as np
 import pytest
+from conftest import TINY_TRAIN_TOML
 
 from togglecf.features.windows import FeatureSettings, SchemaMismatchError, feature_schema
 from togglecf.learn.models import (MotionClassifier, NoiseRegressor, classification_metrics, load_bundle,
@@ -152,16 +154,11 @@ def test_held_out_skill(cv_run):
     assert overall["acc"]["rmse"] < overall["acc_zero"]["rmse"]
 
 
-
 @pytest.mark.parametrize("earlier", ["another run's modes", "a damaged file"])
 def test_training_replaces_an_earlier_gains_file(mini_index, tmp_path, earlier):
     """Training into a directory that holds an earlier ``gains.json``: the new file has this run's modes
     only (a mode of the earlier run beside the new models would pass their schema check with settings
     learned for other models), and a damaged earlier file does not stop the run."""
-    import tomllib
-
-    from conftest import TINY_TRAIN_TOML
-
     out = tmp_path / "models"
     out.mkdir()
     stale = {"format": 2, "feature_schema_hash": "x", "vqf_6d": {"filter": "vqf_toggling", "settings": {}}}

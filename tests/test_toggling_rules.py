@@ -174,6 +174,7 @@ def test_the_rate_bound_is_checked_and_off_by_default():
 # ---------------------------------------------------------------- the field follows the tilt correction
 
 def _tuples(*vectors):
+    """Each vector as a tuple of floats: ``turn_as`` is compiled for the filter's tuples, one type for all three."""
     return tuple(tuple(float(x) for x in v) for v in vectors)
 
 

@@ -342,7 +342,7 @@ def test_state_size_is_reported_and_documented(exported, model_dir):
     for mode, (rep, _) in exported.items():
         L, S = rep["window_max"], rep["n_classes"]  # the ring is sized for TCF_MAX_FS
         assert rep["state_bytes"] > 0 and L > rep["window"] and rep["max_fs"] == 400.0
-        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (66 + 12 * L + 3 * S)
+        assert rep["state_bytes"] == cfilter.state_bytes_formula(L, S) == 4 * (69 + 12 * L + 3 * S)
         assert rep["n_trees"] < len(full.roots)  # unused outputs' trees are not exported
         names = {Path(f).name for f in rep["files"]}
         assert {"tcf_filter.h", "tcf_filter.c", "tcf_config.h", "tcf_forest.h", "tcf_forest.c", "tcf_harness.c",

@@ -64,13 +64,14 @@ C_FILTER = framework.CSourceSet(
 
 def state_bytes_formula(window_max: int, n_classes: int) -> int:
     """``sizeof(tcf_filter_t)`` as documented in ``tcf_filter.h``: 4-byte members only,
-    ``4 · (66 + 12 L_max + 3 S)`` (66 = the per-sample constants of the init rate Ts, fallback gains
-    2, γ, bias gain, tan of the heading's largest turn 6; quaternion 4, bias 3, a_pred 3, m_pred 3, flag 1, the features' per-sample
+    ``4 · (69 + 12 L_max + 3 S)`` (69 = the per-sample constants of the init rate Ts, fallback gains
+    2, γ, bias gain, tan of the heading's largest turn, the field reference's gain 7; quaternion 4, bias 3,
+    a_pred 3, m_pred 3, the field reference's norm and dip 2, flag 1, the features' per-sample
     constants 6, EMA references as hi + lo 10, candidate field as hi + lo 4 and its count 1,
     previous acc 3, last-sample features 10, counters 3, η̂ 6, diagnostics 3; 12 L_max the ring,
     ``TCF_WINDOW_MAX`` rows for ``TCF_MAX_FS``; 3 S the per-state gains α_acc, α_mag and the class
     probabilities)."""
-    return 4 * (66 + 12 * int(window_max) + 3 * int(n_classes))
+    return 4 * (69 + 12 * int(window_max) + 3 * int(n_classes))
 
 
 def _filter_defines(settings, static_index: int, fs: float) -> str:
@@ -94,6 +95,14 @@ def _filter_defines(settings, static_index: int, fs: float) -> str:
 #define TCF_MAG_DISTURBANCE_SCALE {c_float(s.mag_disturbance_scale)}   /* uT, 0 = off */
 #define TCF_MAG_REJECTION_FACTOR {c_float(s.mag_rejection_factor)}   /* largest divisor of the mag gain by the back-off */
 #define TCF_MAG_RATE_LIMIT {c_float(s.mag_rate_limit)}   /* rad/s, fastest turn of m_pred by the heading correction (0: none) */
+/* step 5b, the heading bias in motion: 1 / heading_bias_tau (0: off), fed where the field passes the check against
+ * its reference (which follows it with TCF_MAG_REF_TAU) and |a| is within TCF_ACC_NORM_THRESHOLD g of TCF_GRAVITY */
+#define TCF_HEADING_BIAS_RATE {c_float(1.0 / s.heading_bias_tau if s.heading_bias_tau > 0.0 else 0.0)}   /* 1/s */
+#define TCF_HEADING_BIAS_CLIP {c_float(s.heading_bias_clip)}   /* rad/s, the feed never takes |bias| above it */
+#define TCF_MAG_NORM_THRESHOLD {c_float(s.mag_norm_threshold)}   /* relative deviation of |m| from the reference */
+#define TCF_MAG_DIP_THRESHOLD {c_float(s.mag_dip_threshold)}   /* rad, deviation of the dip from the reference */
+#define TCF_MAG_REF_TAU {c_float(s.mag_ref_tau)}   /* s */
+#define TCF_ACC_NORM_THRESHOLD {c_float(s.acc_norm_threshold)}   /* relative deviation of |a| from g */
 #define TCF_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}
 #define TCF_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}
 /* the fallback (no prediction, or top probability below TCF_CONFIDENCE_FLOOR of the sum): the cautious
@@ -139,7 +148,7 @@ def export_c_filter(model_dir, out_dir, fs=None, use_mag: bool = True, riscv: bo
                                    "tan_mag_step": float(p.tan_mag_step)},
               "schema_hash": ex.schema_hash, "model_hash": ex.model_hash, "gains_sha256": ex.gains_hash,
               "fallback": learned.fallback_config(filt.models)[1],
-              "state_bytes_formula": "4 * (66 + 12 * window_max + 3 * n_classes)",
+              "state_bytes_formula": "4 * (69 + 12 * window_max + 3 * n_classes)",
               "state_bytes_documented": state_bytes_formula(L, k)}
     size, documented = framework.probe_sizes(out_dir, "tcf_filter.h", ["sizeof(tcf_filter_t)", "TCF_STATE_BYTES"])
     if documented != report["state_bytes_documented"]:

@@ -143,6 +143,7 @@ static void tcf_coefficients(float ts, tcf_filter_coeffs_t *c) {
   c->gamma = tcf_gain(TCF_OUTPUT_TAU, ts);
   c->bias_gain = tcf_gain(TCF_BIAS_TAU, ts);
   c->tan_mag_step = tanf(TCF_MAG_RATE_LIMIT * ts);
+  c->mag_ref_gain = tcf_gain(TCF_MAG_REF_TAU, ts);
 }
 
 /* Step 5's gain alpha, lowered where the vector CF step v_new = (1 - alpha) v + alpha m would turn v by
@@ -181,6 +182,57 @@ static void tcf_turn_as(const float u[3], const float v[3], float w[3]) {
   w1 = c * w[1] + kz * w[0] - kx * w[2] + kw * ky;
   w2 = c * w[2] + kx * w[1] - ky * w[0] + kw * kz;
   w[0] = w0; w[1] = w1; w[2] = w2;
+}
+
+/* Step 5b's field check (_field_accepted, VQF's): m's norm and dip asin(m^ . up) against the reference
+   (set from the first field, at initialisation), which follows an accepted field */
+static int tcf_field_accepted(tcf_filter_t *f, const float up[3], const float m[3]) {
+  float norm = sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+  float dip = asinf(fmaxf(-1.0f, fminf(1.0f, (m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)));
+  int accepted;
+  if (!(f->mag_ref_norm > 0.0f)) {
+    f->mag_ref_norm = norm;
+    f->mag_ref_dip = dip;
+  }
+  accepted = fabsf(norm - f->mag_ref_norm) < TCF_MAG_NORM_THRESHOLD * f->mag_ref_norm
+             && fabsf(dip - f->mag_ref_dip) < TCF_MAG_DIP_THRESHOLD;
+  if (accepted) {
+    f->mag_ref_norm += f->c.mag_ref_gain * (norm - f->mag_ref_norm);
+    f->mag_ref_dip += f->c.mag_ref_gain * (dip - f->mag_ref_dip);
+  }
+  return accepted;
+}
+
+/* Step 5b (heading_bias_step): the bias fed with the heading correction that turned m_before into m_after about
+   the vertical of a_pred, where the field m_d and the accelerometer a_d pass their checks; the feed never takes
+   |bias| above TCF_HEADING_BIAS_CLIP */
+static void tcf_heading_bias_step(tcf_filter_t *f, const float a_d[3], const float m_before[3],
+                                  const float m_after[3], const float m_d[3]) {
+  const float *a = f->a_pred;
+  float na, up[3], g, d0, d1, h0[3], h1[3], n01, sin_turn, v, nb[3], new_norm2;
+  int j, field_ok;
+  if (!(TCF_HEADING_BIAS_RATE > 0.0f) || !tcf_vec_ok(a)) return;
+  na = sqrtf(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+  for (j = 0; j < 3; ++j) up[j] = a[j] / na;
+  field_ok = tcf_field_accepted(f, up, m_d);  /* first: the reference follows the field either way */
+  g = sqrtf(a_d[0] * a_d[0] + a_d[1] * a_d[1] + a_d[2] * a_d[2]);
+  if (!(field_ok && fabsf(g - TCF_GRAVITY) < TCF_ACC_NORM_THRESHOLD * TCF_GRAVITY)) return;
+  d0 = m_before[0] * up[0] + m_before[1] * up[1] + m_before[2] * up[2];
+  d1 = m_after[0] * up[0] + m_after[1] * up[1] + m_after[2] * up[2];
+  for (j = 0; j < 3; ++j) {
+    h0[j] = m_before[j] - d0 * up[j];
+    h1[j] = m_after[j] - d1 * up[j];
+  }
+  n01 = sqrtf((h0[0] * h0[0] + h0[1] * h0[1] + h0[2] * h0[2]) * (h1[0] * h1[0] + h1[1] * h1[1] + h1[2] * h1[2]));
+  if (!(n01 > 0.0f)) return;
+  sin_turn = ((h0[1] * h1[2] - h0[2] * h1[1]) * up[0] + (h0[2] * h1[0] - h0[0] * h1[2]) * up[1]
+              + (h0[0] * h1[1] - h0[1] * h1[0]) * up[2]) / n01;  /* the turn about the vertical */
+  v = sin_turn * TCF_HEADING_BIAS_RATE;
+  for (j = 0; j < 3; ++j) nb[j] = f->bias[j] + v * up[j];
+  new_norm2 = nb[0] * nb[0] + nb[1] * nb[1] + nb[2] * nb[2];
+  if (new_norm2 > TCF_HEADING_BIAS_CLIP * TCF_HEADING_BIAS_CLIP
+      && new_norm2 > f->bias[0] * f->bias[0] + f->bias[1] * f->bias[1] + f->bias[2] * f->bias[2]) return;
+  for (j = 0; j < 3; ++j) f->bias[j] = nb[j];
 }
 
 /* Step 4, the toggling CF's fallback rule (prediction.switch_status: a hard switch, unlike the learned
@@ -242,7 +294,11 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
       f->initialized = 1u;
       f->a_pred[0] = a_d[0]; f->a_pred[1] = a_d[1]; f->a_pred[2] = a_d[2];
       if (mag_ok) {
+        float na = sqrtf(a_d[0] * a_d[0] + a_d[1] * a_d[1] + a_d[2] * a_d[2]);
+        float up[3];
+        up[0] = a_d[0] / na; up[1] = a_d[1] / na; up[2] = a_d[2] / na;
         f->m_pred[0] = m_d[0]; f->m_pred[1] = m_d[1]; f->m_pred[2] = m_d[2];
+        (void)tcf_field_accepted(f, up, m_d);  /* step 5b's field reference, from the first field */
       } else {
         tcf_q_rotate(q0, 1, north, f->m_pred);  /* in 6D m_pred is unused */
       }
@@ -273,8 +329,11 @@ static void tcf_toggle_step(tcf_filter_t *f, const float gyr[3], const float acc
     f->alpha_acc = alpha_a;
   }
   if (mag_ok) {  /* the heading correction turns m_pred at most TCF_MAG_RATE_LIMIT */
+    float m_corrected[3];
     alpha_m = tcf_rate_bounded_gain(alpha_m, f->m_pred, m_d, f->c.tan_mag_step);
-    for (j = 0; j < 3; ++j) f->m_pred[j] = (1.0f - alpha_m) * f->m_pred[j] + alpha_m * m_d[j];
+    for (j = 0; j < 3; ++j) m_corrected[j] = (1.0f - alpha_m) * f->m_pred[j] + alpha_m * m_d[j];
+    if (acc_ok) tcf_heading_bias_step(f, a_d, f->m_pred, m_corrected, m_d);  /* step 5b: heading bias in motion */
+    for (j = 0; j < 3; ++j) f->m_pred[j] = m_corrected[j];
     f->alpha_mag = alpha_m;
   }
   if (acc_mag_quaternion(f->quat, f->a_pred, f->m_pred, TCF_USE_MAG, q_am)) {  /* step 6 */
@@ -296,6 +355,8 @@ int tcf_filter_init(tcf_filter_t *f, float fs) {
   for (j = 0; j < 3; ++j) {
     f->bias[j] = 0.0f; f->a_pred[j] = 0.0f; f->m_pred[j] = 0.0f;
   }
+  f->mag_ref_norm = 0.0f;
+  f->mag_ref_dip = 0.0f;
   f->initialized = 0u;
   (void)tcf_features_init(&f->feat, fs);  /* TCF_OK: the checks of tcf_features_rate above */
   f->alpha_acc = 0.0f;

@@ -59,6 +59,7 @@ typedef struct tcf_filter_coeffs {
   float gamma;                        /* output blend, 1 - exp(-Ts / output_tau) (1: tau 0) */
   float bias_gain;                    /* gyro bias learning, 1 - exp(-Ts / bias_tau) (0: off) */
   float tan_mag_step;                 /* tan(mag_rate_limit * Ts): largest turn of m_pred per sample (0: none) */
+  float mag_ref_gain;                 /* step 5b's field reference follows the field, 1 - exp(-Ts / mag_ref_tau) */
 } tcf_filter_coeffs_t;
 
 /* The state: the names of TogglingFilter's state (filters.base.COMMON_STATE_FIELDS, then bias, a_pred,
@@ -70,6 +71,8 @@ typedef struct tcf_filter {
   float bias[3];       /* gyro bias estimate [rad/s] */
   float a_pred[3];     /* gyro-propagated, filtered specific force (sensor frame) [m/s^2] */
   float m_pred[3];     /* gyro-propagated, filtered magnetic field (sensor frame) [uT] */
+  float mag_ref_norm;  /* step 5b's reference field norm [uT] (0: not yet set) */
+  float mag_ref_dip;   /* and dip [rad], asin(m^ . up) */
   uint32_t initialized;  /* 0 until the first valid acc(/mag) sample */
   /* feature window and held prediction (tcf_features.h; NaN before the first full window) */
   tcf_features_t feat;
@@ -80,8 +83,8 @@ typedef struct tcf_filter {
 } tcf_filter_t;
 
 /* sizeof(tcf_filter_t): 4-byte members only, no padding (checked at compile time): the coefficients
-   (6 + 2 S), the filter (14 + 3 diagnostics), the features (TCF_FEATURES_STATE_BYTES) */
-#define TCF_STATE_BYTES (4 * (23 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
+   (7 + 2 S), the filter (16 + 3 diagnostics), the features (TCF_FEATURES_STATE_BYTES) */
+#define TCF_STATE_BYTES (4 * (26 + 2 * TCF_N_CLASSES) + TCF_FEATURES_STATE_BYTES)
 
 /* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
    settings (see "Rate at init"), identity orientation, not initialized, empty window, no

@@ -37,6 +37,19 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    (``mag_rate_limit`` ω_m [rad/s]; 0: no bound): the heading correction moves at most ω_m, however
    large the error, as Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
    heading by at most ω_m times its duration, while small errors still decay with τ_mag
+5b. heading bias in motion (9D)  b ← b + (θ_h / τ_i) û, with θ_h the angle by which the heading correction
+   just turned m_pred's horizontal part about the estimated vertical û = a_pred / |a_pred|: the
+   integral term of a PI heading loop (as Mahony's k_I, on the heading only). Step 1 learns the bias only
+   at predicted rest, and a bias left in motion (about 1 °/s on a consumer gyroscope) against the
+   linear heading correction holds the heading behind by bias × τ_mag (10° at 0.6 °/s and τ_mag
+   17.5 s). Fed only where the heading correction is evidence of the bias: the field passes VQF's
+   magnetic disturbance check (its norm within ``mag_norm_threshold`` of the reference norm and its
+   dip, asin(m̂ · û), within ``mag_dip_threshold`` of the reference dip; the reference follows the
+   accepted field with ``mag_ref_tau`` from the first magnetometer sample, as VQF's magRefTau; a new
+   field is never adopted, so a field that stays disturbed stops the feed) and the accelerometer
+   reads gravity alone (||a_d| − g| < ``acc_norm_threshold`` g: the vertical û the heading is measured
+   about is then trustworthy). The feed never takes |b| above ``heading_bias_clip`` (VQF's biasClip,
+   2 °/s): a wrong feed costs at most that rate. The loop's damping is ζ = ½ √(τ_i / τ_mag).
 6. acc/mag orientation      q_am = from_acc_mag(a_pred, m_pred)   (6D: q_g tilted onto a_pred)
 7. output blend             q = normalize((1 − γ) q_g + γ q_am)    (LERP on the short arc)
 
@@ -67,6 +80,7 @@ import numpy as np
 from numba import njit
 
 from togglecf.core.quaternion import multiply_scalar, normalize_scalar, rotate_inverse_scalar
+from togglecf.data.broad import GRAVITY
 from togglecf.filters.base import (
     FilterSettings,
     acc_mag_quaternion,
@@ -93,12 +107,14 @@ __all__ = [
     "TogglingCoefficients",
     "TogglingFilter",
     "TogglingSettings",
+    "heading_bias_step",
     "rate_bounded_gain",
     "toggle_step",
     "turn_as",
 ]
 
-_STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z")
+_STATE = ("bias_x", "bias_y", "bias_z", "a_pred_x", "a_pred_y", "a_pred_z", "m_pred_x", "m_pred_y", "m_pred_z",
+          "mag_ref_norm", "mag_ref_dip")
 
 
 @dataclass(frozen=True)
@@ -124,6 +140,17 @@ class TogglingSettings(FilterSettings):
             probability (of their sum) is below it is not used; 0 (default): every valid one is.
         mag_rate_limit: ω_m [rad/s] of step 5: the fastest the magnetometer's vector CF step may turn
             m_pred (so the heading); 0 (default): no bound. Finite and >= 0.
+        heading_bias_tau: τ_i [s] of step 5b, the heading bias's integral time; 0: off (no bias learned
+            in motion). Default 30 s (ζ ≈ 0.65 at τ_mag 17.5 s; chosen after looking at the developer
+            datasets left out, docs/concepts/toggling-filter.md).
+        heading_bias_clip: largest |b| [rad/s] step 5b may reach (VQF's biasClip: 2 °/s).
+        mag_norm_threshold: largest relative deviation of |m| from the reference norm for step 5b's
+            field check (VQF's magNormTh: 0.1).
+        mag_dip_threshold: largest deviation [rad] of the dip from the reference dip (VQF's magDipTh: 10°).
+        mag_ref_tau: time constant [s] with which the reference norm and dip follow the accepted field
+            (VQF's magRefTau: 20 s).
+        acc_norm_threshold: largest relative deviation of |a| from g [m/s², ``data.broad.GRAVITY``] at
+            which step 5b trusts the vertical (0.1).
     The defaults are placeholders for a two-state model; ``togglecf train`` learns the gains
     on the training trials and stores them with the models (``gains.json``, format 2). They are
     per-sample gains at BROAD's 285.714 Hz as time constants, τ = −Ts/ln(1 − α) rounded to 4
@@ -144,6 +171,12 @@ class TogglingSettings(FilterSettings):
     noise_weight_mag: float = 1.0
     confidence_floor: float = 0.0
     mag_rate_limit: float = 0.0
+    heading_bias_tau: float = 30.0
+    heading_bias_clip: float = 0.0349066  # 2 °/s
+    mag_norm_threshold: float = 0.1
+    mag_dip_threshold: float = 0.174533  # 10°
+    mag_ref_tau: float = 20.0
+    acc_norm_threshold: float = 0.1
 
     def __post_init__(self):
         super().__post_init__()
@@ -172,6 +205,10 @@ class TogglingSettings(FilterSettings):
             raise ValueError(f"confidence_floor must be in [0, 1), got {self.confidence_floor}")
         if not 0.0 <= self.mag_rate_limit < math.inf:
             raise ValueError(f"mag_rate_limit must be finite and >= 0 rad/s, got {self.mag_rate_limit}")
+        for name, unit in (("heading_bias_tau", "s"), ("heading_bias_clip", "rad/s"), ("mag_norm_threshold", ""),
+                           ("mag_dip_threshold", "rad"), ("mag_ref_tau", "s"), ("acc_norm_threshold", "")):
+            if not 0.0 <= getattr(self, name) < math.inf:
+                raise ValueError(f"{name} must be finite and >= 0 {unit}".rstrip() + f", got {getattr(self, name)}")
 
 
 class TogglingCoefficients(NamedTuple):
@@ -192,6 +229,11 @@ class TogglingCoefficients(NamedTuple):
             fallback: the smallest of ``alpha_acc``/``alpha_mag``.
         tan_mag_step: tan(ω_m Ts), the largest turn of m_pred per sample of step 5
             (``TogglingSettings.mag_rate_limit``; 0: no bound).
+        heading_bias_rate: 1 / τ_i [1/s] of step 5b (0: off).
+        heading_bias_clip, mag_norm_threshold, mag_dip_threshold, acc_norm_threshold: the
+            ``TogglingSettings`` of the same names.
+        mag_ref_gain: the reference's gain per sample, from ``mag_ref_tau``.
+        gravity: g [m/s²] of step 5b's accelerometer check (``data.broad.GRAVITY``).
     """
 
     use_mag: float
@@ -211,6 +253,13 @@ class TogglingCoefficients(NamedTuple):
     alpha_fallback_acc: float
     alpha_fallback_mag: float
     tan_mag_step: float
+    heading_bias_rate: float
+    heading_bias_clip: float
+    mag_norm_threshold: float
+    mag_dip_threshold: float
+    mag_ref_gain: float
+    acc_norm_threshold: float
+    gravity: float
 
 
 @njit(cache=True, inline="always")
@@ -269,6 +318,60 @@ def turn_as(u, v, w):
             c * w[2] + kx * w[1] - ky * w[0] + kw * kz)
 
 
+@njit(cache=True, inline="always")
+def _unit(v):
+    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+@njit(cache=True, inline="always")
+def _field_accepted(state, params, up, m):
+    """Step 5b's field check (VQF's): ``m``'s norm and dip asin(m̂ · û) against the reference in ``state[14:16]``
+    (set from the first field, at initialisation); the reference follows an accepted field with
+    ``mag_ref_gain``."""
+    norm = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+    dip = math.asin(max(-1.0, min(1.0, (m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)))
+    if not state[14] > 0.0:
+        state[14], state[15] = norm, dip
+    accepted = (abs(norm - state[14]) < params.mag_norm_threshold * state[14]
+                and abs(dip - state[15]) < params.mag_dip_threshold)
+    if accepted:
+        state[14] += params.mag_ref_gain * (norm - state[14])
+        state[15] += params.mag_ref_gain * (dip - state[15])
+    return accepted
+
+
+@njit(cache=True, inline="always")
+def heading_bias_step(state, params, b, a_pred, a_d, m_before, m_after, m_d):
+    """Step 5b: the bias ``b`` [rad/s] fed with the heading correction that turned ``m_before`` into
+    ``m_after`` (sensor frame) about the vertical of ``a_pred``, where the field ``m_d`` and the
+    accelerometer ``a_d`` pass their checks (module docstring). Returns the new bias."""
+    if params.heading_bias_rate <= 0.0 or not vector_ok(a_pred):
+        return b
+    up = _unit(a_pred)
+    field_ok = _field_accepted(state, params, up, m_d)  # first: the reference follows the field either way
+    g = math.sqrt(a_d[0] * a_d[0] + a_d[1] * a_d[1] + a_d[2] * a_d[2])
+    if not (field_ok and abs(g - params.gravity) < params.acc_norm_threshold * params.gravity):
+        return b
+    d0 = m_before[0] * up[0] + m_before[1] * up[1] + m_before[2] * up[2]
+    d1 = m_after[0] * up[0] + m_after[1] * up[1] + m_after[2] * up[2]
+    h0 = (m_before[0] - d0 * up[0], m_before[1] - d0 * up[1], m_before[2] - d0 * up[2])
+    h1 = (m_after[0] - d1 * up[0], m_after[1] - d1 * up[1], m_after[2] - d1 * up[2])
+    n01 = math.sqrt((h0[0] * h0[0] + h0[1] * h0[1] + h0[2] * h0[2]) * (h1[0] * h1[0] + h1[1] * h1[1] + h1[2] * h1[2]))
+    if not n01 > 0.0:
+        return b
+    # sin θ_h: (h0 × h1) · û / (|h0| |h1|), the turn about the vertical (positive: counter-clockwise seen from above)
+    sin_turn = ((h0[1] * h1[2] - h0[2] * h1[1]) * up[0] + (h0[2] * h1[0] - h0[0] * h1[2]) * up[1]
+                + (h0[0] * h1[1] - h0[1] * h1[0]) * up[2]) / n01
+    v = sin_turn * params.heading_bias_rate
+    new = (b[0] + v * up[0], b[1] + v * up[1], b[2] + v * up[2])
+    new_norm2 = new[0] * new[0] + new[1] * new[1] + new[2] * new[2]
+    clip2 = params.heading_bias_clip * params.heading_bias_clip
+    if new_norm2 > clip2 and new_norm2 > b[0] * b[0] + b[1] * b[1] + b[2] * b[2]:
+        return b  # the feed never takes |b| above the clip (a bias learned at rest may be larger)
+    return new
+
+
 @njit(cache=True)
 def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
     """One sample (module docstring, steps 1-7). diag: [alpha_acc, alpha_mag, p_static, bias_norm,
@@ -305,6 +408,8 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
             state[8], state[9], state[10] = a_d
             north = rotate_inverse_scalar(q0, (0.0, 1.0, 0.0))  # in 6D m_pred is unused
             state[11], state[12], state[13] = m_d if mag_ok else north
+            if mag_ok:  # step 5b's field reference, from the first field
+                _field_accepted(state, params, _unit(a_d), m_d)
         return
     q = load_quat(state)
     b = (state[5], state[6], state[7])
@@ -330,8 +435,11 @@ def toggle_step(state, params, gyr, acc, mag, dt, pred, diag):
         diag[0] = alpha_a
     if mag_ok:
         alpha_m = rate_bounded_gain(alpha_m, m_pred, m_d, params.tan_mag_step)
-        m_pred = ((1.0 - alpha_m) * m_pred[0] + alpha_m * m_d[0], (1.0 - alpha_m) * m_pred[1] + alpha_m * m_d[1],
-                  (1.0 - alpha_m) * m_pred[2] + alpha_m * m_d[2])
+        m_corrected = ((1.0 - alpha_m) * m_pred[0] + alpha_m * m_d[0], (1.0 - alpha_m) * m_pred[1] + alpha_m * m_d[1],
+                       (1.0 - alpha_m) * m_pred[2] + alpha_m * m_d[2])
+        if acc_ok:  # step 5b
+            b = heading_bias_step(state, params, b, a_pred, a_d, m_pred, m_corrected, m_d)
+        m_pred = m_corrected
         diag[1] = alpha_m
     ok, q_am = acc_mag_quaternion(q, a_pred, m_pred, use_mag)  # step 6
     if ok:  # step 7
@@ -375,7 +483,11 @@ class TogglingFilter(PredictionDrivenFilter):
                 "mag_rejection_factor": s.mag_rejection_factor,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
                 "confidence_floor": s.confidence_floor, "alpha_fallback_acc": float(alpha_acc.min()),
-                "alpha_fallback_mag": float(alpha_mag.min()), "tan_mag_step": math.tan(s.mag_rate_limit * ts)}
+                "alpha_fallback_mag": float(alpha_mag.min()), "tan_mag_step": math.tan(s.mag_rate_limit * ts),
+                "heading_bias_rate": 1.0 / s.heading_bias_tau if s.heading_bias_tau > 0.0 else 0.0,
+                "heading_bias_clip": s.heading_bias_clip, "mag_norm_threshold": s.mag_norm_threshold,
+                "mag_dip_threshold": s.mag_dip_threshold, "mag_ref_gain": gain(s.mag_ref_tau, ts),
+                "acc_norm_threshold": s.acc_norm_threshold, "gravity": GRAVITY}
 
     def _default_pred(self, n):
         pred = np.zeros((n, self.n_predictions))

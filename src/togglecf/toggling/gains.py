@@ -154,8 +154,9 @@ class GainSearch:
         mag_rate_limit: grid of the heading correction's rate bound ω_m [rad/s] (0: none; 9D), the
             first coordinate of the descent: the per-state τ_mag are then searched with the bound
             in place (a bound makes a fast τ_mag safe in a disturbed field). None between 0 and 0.02 rad/s
-            (about 1 °/s, a consumer gyroscope's bias): the bias is learned only at predicted rest, and a
-            bound below the bias left in motion cannot hold the heading against it.
+            (about 1 °/s, a consumer gyroscope's bias): the bias is learned fully only at predicted rest (in
+            motion only about the vertical, and only where the field passes step 5b's check), and a bound
+            below the bias left in motion cannot hold the heading against it.
         sweeps: passes over all parameters.
         objective: what the descent minimises (``OBJECTIVES``, module docstring).
         step_rule: when a step is kept (``STEP_RULES``, module docstring): by default one standard

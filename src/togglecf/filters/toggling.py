@@ -20,7 +20,7 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    confidence c = max_s p_s / Σ_s p_s is below ``confidence_floor`` c₀, the models are not
    used: α_a, α_m are the *cautious* gains, per sensor the slowest of the per-state ones (trust
    the gyro where the motion is unknown), no noise is removed (step 3) and the bias does not
-   move (step 1). With every sample falling back, the filter is the same filter with every
+   move at rest (step 1; step 5b, part of the core, still runs). With every sample falling back, the filter is the same filter with every
    state at those slowest time constants and the learned terms off (test). A hard switch, like
    the toggling itself; c₀ = 0 never falls back on a valid prediction. (The rule, and how it
    differs from the learned VQF's blend towards its core, is in ``filters.prediction``.) Cautious rather than the
@@ -37,7 +37,7 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    (``mag_rate_limit`` ω_m [rad/s]; 0: no bound): the heading correction moves at most ω_m, however
    large the error, as Madgwick's normalised gradient step moves at most β. A disturbance of the field then turns the
    heading by at most ω_m times its duration, while small errors still decay with τ_mag
-5b. heading bias in motion (9D)  b ← b + (θ_h / τ_i) û, with θ_h the angle by which the heading correction
+5b. heading bias in motion (9D)  b ← b + (sin θ_h / τ_i) û, with θ_h the angle by which the heading correction
    just turned m_pred's horizontal part about the estimated vertical û = a_pred / |a_pred|: the
    integral term of a PI heading loop (as Mahony's k_I, on the heading only). Step 1 learns the bias only
    at predicted rest, and a bias left in motion (about 1 °/s on a consumer gyroscope) against the
@@ -172,9 +172,9 @@ class TogglingSettings(FilterSettings):
     confidence_floor: float = 0.0
     mag_rate_limit: float = 0.0
     heading_bias_tau: float = 30.0
-    heading_bias_clip: float = 0.0349066  # 2 °/s
+    heading_bias_clip: float = math.radians(2.0)
     mag_norm_threshold: float = 0.1
-    mag_dip_threshold: float = 0.174533  # 10°
+    mag_dip_threshold: float = math.radians(10.0)
     mag_ref_tau: float = 20.0
     acc_norm_threshold: float = 0.1
 

@@ -58,11 +58,13 @@ def test_parallel_objective_equals_serial():
 
 def test_memo_gives_the_computed_values_and_is_keyed_on_content():
     trials, preds = zip(*(make_trial(s) for s in (3, 4)))
-    search = GainSearch(tau=(33.33, 3.328), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,), sweeps=2)
+    # three sweeps: on these trials the first keeps a step in every coordinate (the second then tries new points
+    # only), the second keeps none
+    search = GainSearch(tau=(33.33, 3.328), output_tau=(0.0,), bias_tau=(-1.0,), mag_disturbance_scale=(0.0,), sweeps=3)
     plain = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=None)
     memo = EvaluationMemo()
     first = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=memo)
-    # the descent's last sweep re-tries points of the sweep before: those come from the memo
+    # a sweep after one that kept no step re-tries the points of that sweep: those come from the memo
     assert first == plain and memo.hits > 0
     n_stored, hits = len(memo.values), memo.hits
     again = learn_gains(trials, preds, ("rest", "dynamic"), "rest", search=search, memo=memo)

@@ -10,6 +10,7 @@
 #include <stddef.h>
 #include <string.h>
 #include "tcf_features.h"
+#include "tcf_math.h"  /* tcf_field_agrees */
 
 #if defined(__FAST_MATH__)
 #error "tcf_features.c must not be compiled with -ffast-math: the missing-value (NaN) tests would be removed"
@@ -53,7 +54,7 @@ static void field_set(tcf_field_t *r, float mn, float dip) {
 
 /* the gate against hi alone: lo (< 1 ulp of hi) cannot matter at a 10 % / 10 degree threshold */
 static TCF_NOINLINE int field_agrees(const tcf_field_t *r, float mn, float dip) {
-  return fabsf(mn - r->mag) < TCF_REF_NORM_TH * r->mag && fabsf(dip - r->dip) < TCF_REF_DIP_TH;
+  return tcf_field_agrees(r->mag, r->dip, mn, dip, TCF_REF_NORM_TH, TCF_REF_DIP_TH);
 }
 
 static TCF_NOINLINE void field_follow(tcf_field_t *r, float c, float mn, float dip) {

@@ -18,7 +18,8 @@
 #include <stddef.h>
 #include "tcf_filter.h"
 #include "tcf_prediction.h"  /* the prediction row as named fields, steps 1, 3, 4 */
-#include "tcf_math.h"  /* tcf_q_mul, tcf_q_normalize, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok */
+#include "tcf_math.h"  /* tcf_q_mul, tcf_q_normalize, tcf_q_rotate, tcf_q_from_rotvec, tcf_vec_ok, tcf_gyro_ok,
+                          tcf_field_agrees */
 
 /* compile-time check of the documented state size (C99: a negative array size is an error) */
 typedef char tcf_state_bytes_check[(sizeof(tcf_filter_t) == TCF_STATE_BYTES) ? 1 : -1];
@@ -184,18 +185,19 @@ static void tcf_turn_as(const float u[3], const float v[3], float w[3]) {
   w[0] = w0; w[1] = w1; w[2] = w2;
 }
 
-/* Step 5b's field check (_field_accepted, VQF's): m's norm and dip asin(m^ . up) against the reference
-   (set from the first field, at initialisation), which follows an accepted field */
+/* Step 5b's field check (_field_accepted, VQF's): m's norm and dip asin(-m^ . up) (positive where the field points
+   down, as the features' dip) against the reference (set from the first field, at initialisation), which follows
+   an accepted field */
 static int tcf_field_accepted(tcf_filter_t *f, const float up[3], const float m[3]) {
   float norm = sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-  float dip = asinf(fmaxf(-1.0f, fminf(1.0f, (m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)));
+  float dip = asinf(fmaxf(-1.0f, fminf(1.0f, -(m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)));
   int accepted;
   if (!(f->mag_ref_norm > 0.0f)) {
     f->mag_ref_norm = norm;
     f->mag_ref_dip = dip;
   }
-  accepted = fabsf(norm - f->mag_ref_norm) < TCF_MAG_NORM_THRESHOLD * f->mag_ref_norm
-             && fabsf(dip - f->mag_ref_dip) < TCF_MAG_DIP_THRESHOLD;
+  accepted = tcf_field_agrees(f->mag_ref_norm, f->mag_ref_dip, norm, dip, TCF_MAG_NORM_THRESHOLD,
+                              TCF_MAG_DIP_THRESHOLD);
   if (accepted) {
     f->mag_ref_norm += f->c.mag_ref_gain * (norm - f->mag_ref_norm);
     f->mag_ref_dip += f->c.mag_ref_gain * (dip - f->mag_ref_dip);

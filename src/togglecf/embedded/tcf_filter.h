@@ -72,7 +72,7 @@ typedef struct tcf_filter {
   float a_pred[3];     /* gyro-propagated, filtered specific force (sensor frame) [m/s^2] */
   float m_pred[3];     /* gyro-propagated, filtered magnetic field (sensor frame) [uT] */
   float mag_ref_norm;  /* step 5b's reference field norm [uT] (0: not yet set) */
-  float mag_ref_dip;   /* and dip [rad], asin(m^ . up) */
+  float mag_ref_dip;   /* and dip [rad], asin(-m^ . up): positive where the field points down */
   uint32_t initialized;  /* 0 until the first valid acc(/mag) sample */
   /* feature window and held prediction (tcf_features.h; NaN before the first full window) */
   tcf_features_t feat;

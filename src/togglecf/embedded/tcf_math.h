@@ -1,4 +1,4 @@
-/* tcf_math.h: the quaternion and vector helpers of the exported filters (tcf_filter.c, tcf_vqf.c),
+/* tcf_math.h: the quaternion and vector helpers of the exported filters (tcf_filter.c, tcf_vqf.c, tcf_features.c),
  * C99 float32, all static inline (each source compiles its own copy; no symbol is exported).
  *
  * Conventions (as togglecf): quaternion [w, x, y, z], Hamilton product, sensor-to-earth.
@@ -22,6 +22,12 @@ static inline int tcf_gyro_ok(const float w[3]) {
 static inline int tcf_vec_ok(const float v[3]) {
   float n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
   return isfinite(n2) && n2 > 1e-18f;
+}
+
+/* VQF's magnetic disturbance test (field_agrees): the field's norm within norm_th of ref_norm (relative) and its
+   dip [rad] within dip_th of ref_dip */
+static inline int tcf_field_agrees(float ref_norm, float ref_dip, float norm, float dip, float norm_th, float dip_th) {
+  return fabsf(norm - ref_norm) < norm_th * ref_norm && fabsf(dip - ref_dip) < dip_th;
 }
 
 /* out = p (x) q (Hamilton; out may alias p or q) (multiply_scalar) */

@@ -70,6 +70,7 @@ from scipy.signal import lfilter
 
 from togglecf.core.io import check_keys
 from togglecf.data.broad import GRAVITY
+from togglecf.filters.base import field_agrees
 
 __all__ = ["FEATURE_VERSION", "FeatureSettings", "FeatureCoefficients", "FeatureSchema", "SchemaMismatchError",
            "feature_coefficients", "feature_schema", "mag_reference_start", "mag_reference_step",
@@ -297,7 +298,7 @@ def mag_reference_start(r, d, cand_r, cand_d, cand_n, mn, dip):
 @njit(cache=True, inline="always")
 def _field_agrees(ref_r, ref_d, mn, dip, params):
     """|m_k| within ``ref_norm_th`` (relative) and δ_k within ``ref_dip_th`` of a field (VQF's M2/M3 test)."""
-    return abs(mn - ref_r) < params.ref_norm_th * ref_r and abs(dip - ref_d) < params.ref_dip_th
+    return field_agrees(ref_r, ref_d, mn, dip, params.ref_norm_th, params.ref_dip_th)
 
 
 @njit(cache=True, inline="always")

@@ -421,6 +421,13 @@ def vector_ok(v):
 
 
 @njit(cache=True, inline="always")
+def field_agrees(ref_norm, ref_dip, norm, dip, norm_th, dip_th):
+    """VQF's magnetic disturbance test (its M2/M3): the field's norm within ``norm_th`` of ``ref_norm``
+    (relative) and its dip [rad] within ``dip_th`` of ``ref_dip``."""
+    return abs(norm - ref_norm) < norm_th * ref_norm and abs(dip - ref_dip) < dip_th
+
+
+@njit(cache=True, inline="always")
 def gyro_valid(gyr):
     """True for a usable gyro sample: every axis finite and below ``GYRO_FULL_SCALE`` (policy above)."""
     # False for NaN too (comparisons with NaN are False). `&`, not `and`: the short-circuit form's

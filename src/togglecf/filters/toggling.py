@@ -44,7 +44,7 @@ of the motion state and the predicted acc/mag noise in the sensor frame):
    linear heading correction holds the heading behind by bias × τ_mag (10° at 0.6 °/s and τ_mag
    17.5 s). Fed only where the heading correction is evidence of the bias: the field passes VQF's
    magnetic disturbance check (its norm within ``mag_norm_threshold`` of the reference norm and its
-   dip, asin(m̂ · û), within ``mag_dip_threshold`` of the reference dip; the reference follows the
+   dip, asin(−m̂ · û), within ``mag_dip_threshold`` of the reference dip; the reference follows the
    accepted field with ``mag_ref_tau`` from the first magnetometer sample, as VQF's magRefTau; a new
    field is never adopted, so a field that stays disturbed stops the feed) and the accelerometer
    reads gravity alone (||a_d| − g| < ``acc_norm_threshold`` g: the vertical û the heading is measured
@@ -84,6 +84,7 @@ from togglecf.data.broad import GRAVITY
 from togglecf.filters.base import (
     FilterSettings,
     acc_mag_quaternion,
+    field_agrees,
     gyro_increment,
     gyro_valid,
     load_quat,
@@ -326,15 +327,14 @@ def _unit(v):
 
 @njit(cache=True, inline="always")
 def _field_accepted(state, params, up, m):
-    """Step 5b's field check (VQF's): ``m``'s norm and dip asin(m̂ · û) against the reference in ``state[14:16]``
-    (set from the first field, at initialisation); the reference follows an accepted field with
-    ``mag_ref_gain``."""
+    """Step 5b's field check (VQF's): ``m``'s norm and dip asin(−m̂ · û) (positive where the field points down, as
+    the features' δ) against the reference in ``state[14:16]`` (set from the first field, at initialisation); the
+    reference follows an accepted field with ``mag_ref_gain``."""
     norm = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
-    dip = math.asin(max(-1.0, min(1.0, (m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)))
+    dip = math.asin(max(-1.0, min(1.0, -(m[0] * up[0] + m[1] * up[1] + m[2] * up[2]) / norm)))
     if not state[14] > 0.0:
         state[14], state[15] = norm, dip
-    accepted = (abs(norm - state[14]) < params.mag_norm_threshold * state[14]
-                and abs(dip - state[15]) < params.mag_dip_threshold)
+    accepted = field_agrees(state[14], state[15], norm, dip, params.mag_norm_threshold, params.mag_dip_threshold)
     if accepted:
         state[14] += params.mag_ref_gain * (norm - state[14])
         state[15] += params.mag_ref_gain * (dip - state[15])
@@ -360,7 +360,7 @@ def heading_bias_step(state, params, b, a_pred, a_d, m_before, m_after, m_d):
     n01 = math.sqrt((h0[0] * h0[0] + h0[1] * h0[1] + h0[2] * h0[2]) * (h1[0] * h1[0] + h1[1] * h1[1] + h1[2] * h1[2]))
     if not n01 > 0.0:
         return b
-    # sin θ_h: (h0 × h1) · û / (|h0| |h1|), the turn about the vertical (positive: counter-clockwise seen from above)
+    # sin θ_h = (h0 × h1) · û / (|h0| |h1|), the turn about the vertical (positive: counter-clockwise from above)
     sin_turn = ((h0[1] * h1[2] - h0[2] * h1[1]) * up[0] + (h0[2] * h1[0] - h0[0] * h1[2]) * up[1]
                 + (h0[0] * h1[1] - h0[1] * h1[0]) * up[2]) / n01
     v = sin_turn * params.heading_bias_rate

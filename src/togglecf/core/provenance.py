@@ -21,7 +21,9 @@ def _git(args, cwd) -> str | None:
 def source_revision(path=None) -> str:
     """The code a run used: ``"commit <hash>"`` (7 hex digits) for a git checkout of the package
     (``path``: the checkout, default the package's own directory), ``"commit <hash> with uncommitted changes"``
-    when tracked files differ from it, else ``"togglecf <version>"`` (an installed wheel)."""
+    when tracked files outside ``docs/`` differ from it, else ``"togglecf <version>"`` (an installed wheel).
+    ``docs/`` is left out because it holds the generated tables (``docs/results``): a run that rewrites some
+    of them before another table names its code (``regenerate_docs.py --bench``) ran the committed code."""
     where = Path(path) if path is not None else Path(__file__).resolve().parent
     commit = _git(["rev-parse", "--short=7", "HEAD"], where)
     if not commit:
@@ -29,7 +31,7 @@ def source_revision(path=None) -> str:
             return f"togglecf {version('togglecf')}"
         except PackageNotFoundError:  # run from a source tree that is not a git checkout
             return "togglecf (unknown version)"
-    dirty = _git(["status", "--porcelain", "--untracked-files=no"], where)
+    dirty = _git(["status", "--porcelain", "--untracked-files=no", "--", ":(top)", ":(top,exclude)docs"], where)
     return f"commit {commit}" + (" with uncommitted changes" if dirty else "")
 
 

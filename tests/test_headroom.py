@@ -1,6 +1,7 @@
 """The headroom over VQF (togglecf.run.headroom, pipelines/headroom.py): the quick mode on the mini
 trials writes the table, the oracles are ordered by construction, the held-out TAGP is chosen on the
-training trials only, and the defaults row is the core at its defaults."""
+training trials only, the defaults row is the core at its defaults, and the goal check needs its margin,
+the tuned pair and every group."""
 import importlib
 import json
 import sys
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 
 from togglecf.registry import FilterSpec
-from togglecf.run.headroom import METRICS, ROWS, finest_partition, held_out_tagp
+from togglecf.run.headroom import (GOAL_MARGIN, GOAL_ROWS, LABELS, METRICS, ROWS, finest_partition, goal_check,
+                                  held_out_tagp)
 from togglecf.run.scoring import TrialResult, score_trial
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
@@ -129,3 +131,41 @@ def test_missing_data_is_one_clear_line(script, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "no trials.json" in err and "nowhere" in err
     assert not (tmp_path / "out").exists()
+
+
+def _goal_result(defaults, row, groups):
+    """A ``dataset_headroom``-shaped result of trials a, b, c with totals per row (heading, inclination 0)."""
+    e = lambda v: {"total": v, "heading": 0.0, "inclination": 0.0}  # noqa: E731
+    rows = {"defaults": {n: e(v) for n, v in defaults.items()},
+            "tagp_held_out": {n: e(v * 0.98) for n, v in defaults.items()},
+            "true_labels": {n: e(v) for n, v in row.items()}}
+    return {"trials": list(defaults), "groups": groups, "rows": rows, "group_rows": {}}
+
+
+def test_goal_check_needs_the_margin_the_tuned_pair_and_every_group():
+    groups = {"g1": ["a", "b"], "g2": ["c"]}
+    # 10 % below the defaults everywhere: below the tuned pair (2 % below) too, every group better: met
+    r = _goal_result({"a": 1.0, "b": 1.0, "c": 2.0}, {"a": 0.9, "b": 0.9, "c": 1.8}, groups)
+    c = goal_check(r, "true_labels")
+    assert c["met"] and c["vs_defaults"] == pytest.approx(-0.10) and c["vs_tagp"] == pytest.approx(0.9 / 0.98 - 1)
+    assert c["worst_group"] in ("g1", "g2") and c["worst"] == pytest.approx(-0.10)
+    # the mean 5.5 % below, but group g2 (one trial) 6 % above the defaults: a hidden trade, not met
+    r = _goal_result({"a": 1.0, "b": 1.0, "c": 2.0}, {"a": 0.78, "b": 0.78, "c": 2.12}, groups)
+    c = goal_check(r, "true_labels")
+    assert c["vs_defaults"] < -GOAL_MARGIN and c["worst_group"] == "g2" and c["worst"] == pytest.approx(0.06)
+    assert not c["met"]
+    # 3 % below the defaults: below the tuned pair but short of the margin
+    r = _goal_result({"a": 1.0, "b": 1.0, "c": 2.0}, {"a": 0.97, "b": 0.97, "c": 1.94}, groups)
+    assert not goal_check(r, "true_labels")["met"]
+    # the held-out TAGP itself never passes (it is what the row must beat)
+    assert not goal_check(r, "tagp_held_out", margin=0.0)["met"]
+
+
+def test_quick_table_checks_the_goal(quick_run):
+    out, r = quick_run
+    text = (out / "headroom.md").read_text()
+    assert text.count("**Against the per-sensor goal**") == 1  # one dataset
+    for row in GOAL_ROWS:
+        c = goal_check(r, row)
+        assert f"| {LABELS[row]} | " in text
+        assert f"{'met' if c['met'] else 'not met'} |" in text

@@ -1,7 +1,7 @@
 """The headroom over VQF (togglecf.run.headroom, pipelines/headroom.py): the quick mode on the mini
 trials writes the table, the oracles are ordered by construction, the held-out TAGP is chosen on the
-training trials only, the defaults row is the core at its defaults, and the goal check needs its margin,
-the tuned pair and every group."""
+training trials only, the defaults row is the core at its defaults, the true-disturbance row is the back-off
+on the reference's field disturbance, and the goal check needs its margin, the tuned pair and every group."""
 import importlib
 import json
 import sys
@@ -10,9 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from togglecf.filters.prediction import PredictionLayout
+from togglecf.filters.vqf_toggling import VQFTogglingSettings
+from togglecf.learn.labels import make_targets, state_names
 from togglecf.registry import FilterSpec
 from togglecf.run.headroom import (GOAL_MARGIN, GOAL_ROWS, LABELS, METRICS, ROWS, finest_partition, goal_check,
-                                  held_out_tagp)
+                                  headroom_settings, held_out_tagp, true_disturbance_predictions)
+from togglecf.run.study_rows import vqf_variant_errors
 from togglecf.run.scoring import TrialResult, score_trial
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
@@ -169,3 +173,30 @@ def test_quick_table_checks_the_goal(quick_run):
         c = goal_check(r, row)
         assert f"| {LABELS[row]} | " in text
         assert f"{'met' if c['met'] else 'not met'} |" in text
+
+
+def test_true_disturbance_row_is_the_back_off_on_the_reference_disturbance(quick_run, mini_index):
+    """The true-disturbance row: prediction rows that carry the reference's η_m (no class probabilities,
+    no accelerometer noise), and each test trial scored at the σ_m its fold chose on its training trials
+    (the held-out TAGP's selection, ``held_out_tagp``); exact, the same code path."""
+    _, r = quick_run
+    settings = headroom_settings(quick=True, jobs=1)
+    states = state_names(settings.labels.label_set)
+    layout = PredictionLayout.of(len(states))
+    name = r["trials"][0]
+    trial = mini_index.load(name)
+    pred = true_disturbance_predictions(trial, settings.labels, len(states))
+    targets = make_targets(trial, settings.labels)
+    assert pred.shape == (trial.n_samples, layout.size) and targets.valid.any() and not targets.valid.all()
+    np.testing.assert_array_equal(pred[targets.valid, layout.eta_mag], targets.eta_mag[targets.valid])
+    assert np.isnan(pred[~targets.valid, layout.eta_mag]).all() and np.isnan(pred[:, layout.probabilities]).all()
+    assert (pred[:, layout.eta_acc] == 0.0).all()
+    # a disturbance large enough to matter on a real trial: the back-off changes the result
+    scores = {}
+    for scale in settings.disturbance_scales:
+        s = VQFTogglingSettings(states=tuple(states), mag_disturbance_scale=scale)
+        scores[scale] = vqf_variant_errors(s, trial, pred)["total"]
+    assert scores[5.0] != pytest.approx(r["rows"]["defaults"][name]["total"], abs=1e-6)
+    fold = next(f for f in r["folds"] if name in f["test"])
+    assert fold["true_disturbance_scale"] in settings.disturbance_scales
+    assert r["rows"]["true_disturbance"][name]["total"] == scores[fold["true_disturbance_scale"]]

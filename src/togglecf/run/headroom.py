@@ -20,6 +20,13 @@ inclination RMSE [deg], ``metrics.trial_errors``) with:
   trials (the study's ``vqf_oracle`` ablation, within this dataset);
 * ``true_labels_tagp``: the same, with the descent started at the fold's TAGP and τ_acc, τ_mag searched
   per state over the TAGP grid: the per-state ceiling above the held-out TAGP;
+* ``true_disturbance``: VQF's defaults with the learned VQF's magnetic back-off (step 3 of
+  ``filters.vqf_toggling``: the heading gain divided by 1 + min((|η_m| / σ_m)², f_reject − 1)) driven by the
+  *true* field disturbance η_m (``learn.labels.make_targets``: the measured field minus the reference
+  orientation's view of the earth field, where the reference is valid; what a perfect magnetometer-noise
+  regressor would predict), σ_m chosen from ``HeadroomSettings.disturbance_scales`` on each fold's training
+  trials and scored on its test trials: the ceiling of the learned back-off, which the true-labels rows
+  (zero predicted noise) leave out;
 * ``offline``: the ``vqf`` package's offline (non-causal) VQF at its defaults: the bound no causal
   filter should pass.
 
@@ -29,8 +36,9 @@ are reported at the chosen pair.
 
 Each dataset's table ends with the rows a learned modulation could reach (``GOAL_ROWS``) against the
 per-sensor goal (``goal_check``: at least ``GOAL_MARGIN`` below VQF's defaults and below the held-out TAGP,
-no group more than ``GOAL_MARGIN`` above VQF's defaults): where even the true-labels row misses it, no
-motion classifier driving the per-state settings can meet it on that dataset.
+no group more than ``GOAL_MARGIN`` above VQF's defaults): where even the true-labels rows miss it, no
+motion classifier driving the per-state settings can meet it on that dataset; where the true-disturbance
+row misses it, no magnetometer-noise regressor driving the back-off can.
 """
 from __future__ import annotations
 
@@ -46,39 +54,42 @@ from togglecf.core.extras import require
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.provenance import generated_line, source_revision
 from togglecf.data.broad import DatasetIndex
+from togglecf.filters.prediction import PredictionLayout
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.learn.folds import trial_folds
-from togglecf.learn.labels import LabelSettings, state_names
+from togglecf.learn.labels import LabelSettings, make_targets, state_names
 from togglecf.metrics.broad import trial_errors
 from togglecf.parallel.backend import LocalBackend
 from togglecf.registry import FilterSpec
 from togglecf.run.config import load_config
-from togglecf.run.scoring import grid_points, score_trial
+from togglecf.run.scoring import TrialResult, grid_points, score_trial
 from togglecf.run.study import load_study_config
 from togglecf.run.study_rows import learn_vqf_variant, oracle_predictions, tagp_on, vqf_variant_errors
 from togglecf.run.sweep import run_sweep
 from togglecf.toggling.gains import VQFGainSearch, describe_gains
 
 __all__ = ["ROWS", "ORACLE_ROWS", "LABELS", "METRICS", "GOAL_MARGIN", "GOAL_ROWS", "HeadroomSettings",
-           "headroom_settings", "finest_partition", "held_out_tagp", "dataset_headroom", "group_mean", "goal_check",
-           "headroom_table", "headroom_json", "run_headroom"]
+           "headroom_settings", "finest_partition", "held_out_tagp", "true_disturbance_predictions",
+           "dataset_headroom", "group_mean", "goal_check", "headroom_table", "headroom_json", "run_headroom"]
 
 log = logging.getLogger(__name__)
 
 #: the rows of the table, in order (``defaults`` first: every other is compared with it)
 ROWS = ("defaults", "tagp_held_out", "tagp_in_sample", "group_oracle", "trial_oracle", "true_labels",
-        "true_labels_tagp", "offline")
+        "true_labels_tagp", "true_disturbance", "offline")
 #: rows chosen on the trials they are scored on (in-sample ceilings)
 ORACLE_ROWS = ("tagp_in_sample", "group_oracle", "trial_oracle")
 #: column headers of the table
 LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in_sample": "TAGP in-sample (oracle)",
           "group_oracle": "group oracle", "trial_oracle": "trial oracle", "true_labels": "true labels",
-          "true_labels_tagp": "true labels from TAGP", "offline": "offline VQF"}
+          "true_labels_tagp": "true labels from TAGP", "true_disturbance": "true disturbance",
+          "offline": "offline VQF"}
 #: the per-sensor goal's margin (issue "learning that pays off", item 2): at least this fraction below VQF's
 #: defaults, below the held-out TAGP, and no group more than this fraction above VQF's defaults
 GOAL_MARGIN = 0.05
 #: the rows checked against that goal: what a learned modulation of the two time constants could reach
-GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "group_oracle", "trial_oracle", "offline")
+GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "true_disturbance", "group_oracle", "trial_oracle",
+             "offline")
 #: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)
 METRICS = ("total", "heading", "inclination")
 #: the core's filter name (``registry``), run at VQF's defaults when given no parameters
@@ -96,6 +107,8 @@ class HeadroomSettings:
         fold_seed: ``learn.folds.trial_folds``'s seed (0: round-robin over the sorted names, the study's).
         search: the true-label rows' per-state search (default the study's ``[gains.vqf]``).
         labels: the motion labels' settings (default the study's training config's ``[labels]`` and seed).
+        disturbance_scales: σ_m [µT] values of the true-disturbance row (each fold takes the best on its
+            training trials).
         jobs: worker processes of the grid and the gain searches.
     """
 
@@ -104,6 +117,7 @@ class HeadroomSettings:
     fold_seed: int = 0
     search: VQFGainSearch = field(default_factory=VQFGainSearch)
     labels: LabelSettings = field(default_factory=LabelSettings)
+    disturbance_scales: tuple = (2.0, 5.0, 10.0, 20.0)
     jobs: int = 1
 
 
@@ -122,8 +136,9 @@ def headroom_settings(quick: bool = False, jobs: int | None = None) -> HeadroomS
     if quick:
         grid = {k: list(v) for k, v in QUICK_GRID.items()}
         search = replace(search, tau_acc=(1.0, 3.0), confidence_floor=(0.0,), mag_disturbance_scale=(0.0,))
+    scales = (5.0, 20.0) if quick else HeadroomSettings.disturbance_scales
     return HeadroomSettings(grid=grid, folds=cfg.folds, fold_seed=cfg.fold_seed, search=search, labels=labels,
-                            jobs=jobs or os.cpu_count() or 1)
+                            disturbance_scales=scales, jobs=jobs or os.cpu_count() or 1)
 
 
 def finest_partition(groups: dict, names) -> list[str]:
@@ -179,6 +194,31 @@ def _true_label_rows(trials: dict, folds, preds: dict, states, settings: Headroo
         log.info(f"  true labels, fold {k + 1}/{len(folds)} in {time.perf_counter() - t0:.0f} s: "
                  + "; ".join(f"{r}: {v}" for r, v in fold.items()))
     return rows, info
+
+
+def true_disturbance_predictions(trial, labels: LabelSettings, n_states: int) -> np.ndarray:
+    """Prediction rows ``(N, S + 6)`` (``PredictionLayout``) that carry the *true* field disturbance η_m [µT]
+    (``make_targets``' ``eta_mag``) where the reference is valid, NaN elsewhere, and no class probabilities
+    (NaN: the learned VQF keeps its core's settings) nor accelerometer noise (zero)."""
+    targets = make_targets(trial, labels)
+    layout = PredictionLayout.of(n_states)
+    pred = np.full((trial.n_samples, layout.size), np.nan)
+    pred[:, layout.eta_acc] = 0.0
+    pred[targets.valid, layout.eta_mag] = targets.eta_mag[targets.valid]
+    return pred
+
+
+def _true_disturbance_grid(trials: dict, states, settings: HeadroomSettings) -> tuple[list, list]:
+    """Every trial with VQF's defaults and the back-off driven by the true disturbance, at each σ_m of
+    ``settings.disturbance_scales``: (keys, res) as ``held_out_tagp`` takes them."""
+    keys = [{"mag_disturbance_scale": float(v)} for v in settings.disturbance_scales]
+    res = [{} for _ in keys]
+    for n, t in trials.items():
+        pred = true_disturbance_predictions(t, settings.labels, len(states))
+        for i, k in enumerate(keys):
+            e = vqf_variant_errors(VQFTogglingSettings(states=tuple(states), **k), t, pred)
+            res[i][n] = TrialResult(n, (), _errors(e), 0.0, t.n_samples, params=k)
+    return keys, res
 
 
 def held_out_tagp(names, folds, keys, res) -> tuple[dict, list]:
@@ -247,8 +287,14 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
     coverage = float(np.mean(np.concatenate([np.isfinite(p[:, 0]) for p in preds.values()])))
     true_rows, true_info = _true_label_rows(loaded, folds, preds, states, settings, [f["tagp"] for f in fold_info])
     rows.update(true_rows)
-    for f, extra in zip(fold_info, true_info):
+    t0 = time.perf_counter()
+    d_keys, d_res = _true_disturbance_grid(loaded, states, settings)
+    rows["true_disturbance"], d_info = held_out_tagp(names, folds, d_keys, d_res)
+    log.info(f"  true disturbance: {len(d_keys)} σ_m x {len(names)} trials in {time.perf_counter() - t0:.0f} s; "
+             + ", ".join(f"fold {f['fold'] + 1} σ_m {f['tagp']['mag_disturbance_scale']:g} µT" for f in d_info))
+    for f, extra, d in zip(fold_info, true_info, d_info):
         f["true_labels"] = extra
+        f["true_disturbance_scale"] = d["tagp"]["mag_disturbance_scale"]
     log.info(f"  {index.root.name} done in {time.perf_counter() - t_start:.0f} s")
     return {"name": index.root.name, "trials": names, "groups": groups, "partition": partition, "rows": rows,
             "folds": fold_info, "tagp_in_sample": pair_all,
@@ -334,8 +380,11 @@ def headroom_table(results: list, command: str, revision: str | None = None) -> 
              "the true motion state instead of a classifier (the study's `vqf_oracle`: its search from VQF's "
              "defaults), learned on each fold's training trials and scored on its test trials; *true labels "
              "from TAGP*: the same search started at the fold's TAGP with τ_acc and τ_mag per state on the "
-             "grid. *offline VQF*: the `vqf` package's non-causal estimate at its defaults. Pairs are chosen "
-             "on the total RMSE; heading and inclination are at the chosen pair.", ""]
+             "grid. *true disturbance*: VQF's defaults with the learned VQF's magnetic back-off driven by the "
+             "true field disturbance |η_m| (from the reference: what a perfect magnetometer-noise regressor would "
+             "predict; bounded, as the learned VQF's, by the core's rejection factor), σ_m chosen on each fold's "
+             "training trials. *offline VQF*: the `vqf` package's non-causal estimate at its defaults. Pairs are "
+             "chosen on the total RMSE; heading and inclination are at the chosen pair.", ""]
     for r in results:
         groups = ["all"] + list(r["groups"])
         grid = ", ".join(f"{k} {{{', '.join(f'{v:g}' for v in vals)}}} s" for k, vals in r["grid"].items())
@@ -362,7 +411,8 @@ def headroom_table(results: list, command: str, revision: str | None = None) -> 
                               f"{f['train_mean_total']:.2f}°)" for f in r["folds"]) + ". Group oracle: "
                   + "; ".join(f"{g} {_pair(p)}" for g, p in r["group_pairs"].items()) + ". Finest partition: "
                   + (", ".join(r["partition"]) if r["partition"] else "none (the all row is the in-sample TAGP)")
-                  + ".", ""]
+                  + ". True disturbance, σ_m per fold: "
+                  + ", ".join(f"{f['true_disturbance_scale']:g} µT" for f in r["folds"]) + ".", ""]
     return "\n".join(lines)
 
 

@@ -87,7 +87,8 @@ LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in
 #: the per-sensor goal's margin (issue "learning that pays off", item 2): at least this fraction below VQF's
 #: defaults, below the held-out TAGP, and no group more than this fraction above VQF's defaults
 GOAL_MARGIN = 0.05
-#: the rows checked against that goal: what a learned modulation of the two time constants could reach
+#: the rows checked against that goal: the tuned pair, the ceilings of the learned parts (true labels, true
+#: disturbance), the oracles of the pair and the non-causal bound
 GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "true_disturbance", "group_oracle", "trial_oracle",
              "offline")
 #: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)
@@ -244,8 +245,8 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
     selection, ``DatasetIndex.select``); ``store``: a ``run.sweep.ResultStore`` that keeps the grid's
     results. Returns a dict: ``name``, ``trials``, ``groups`` (name -> present members), ``partition``,
     ``rows`` (row -> trial -> {"total", "heading", "inclination"} [deg]), ``folds`` (per fold its test
-    trials, the TAGP pair and its training mean, the true-label settings), ``group_pairs``, ``trial_pairs``,
-    ``label_coverage`` (fraction of samples with a true label), ``vqf_check`` (largest |Δ| [deg] of the
+    trials, the TAGP pair and its training mean, the true-label settings, the true-disturbance σ_m [µT]),
+    ``group_pairs``, ``trial_pairs``, ``label_coverage`` (fraction of samples with a true label), ``vqf_check`` (largest |Δ| [deg] of the
     core at its defaults against the ``vqf`` package's online VQF) and ``grid``."""
     t_start = time.perf_counter()
     index = DatasetIndex.from_dir(data_dir)

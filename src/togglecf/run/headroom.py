@@ -246,8 +246,8 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
     results. Returns a dict: ``name``, ``trials``, ``groups`` (name -> present members), ``partition``,
     ``rows`` (row -> trial -> {"total", "heading", "inclination"} [deg]), ``folds`` (per fold its test
     trials, the TAGP pair and its training mean, the true-label settings, the true-disturbance σ_m [µT]),
-    ``group_pairs``, ``trial_pairs``, ``label_coverage`` (fraction of samples with a true label), ``vqf_check`` (largest |Δ| [deg] of the
-    core at its defaults against the ``vqf`` package's online VQF) and ``grid``."""
+    ``group_pairs``, ``trial_pairs``, ``label_coverage`` (fraction of samples with a true label), ``vqf_check``
+    (largest |Δ| [deg] of the core at its defaults against the ``vqf`` package's online VQF) and ``grid``."""
     t_start = time.perf_counter()
     index = DatasetIndex.from_dir(data_dir)
     names = index.select(trials)

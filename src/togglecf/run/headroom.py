@@ -25,8 +25,10 @@ inclination RMSE [deg], ``metrics.trial_errors``) with:
   *true* field disturbance η_m (``learn.labels.make_targets``: the measured field minus the reference
   orientation's view of the earth field, where the reference is valid; what a perfect magnetometer-noise
   regressor would predict), σ_m chosen from ``HeadroomSettings.disturbance_scales`` on each fold's training
-  trials and scored on its test trials: the ceiling of the learned back-off, which the true-labels rows
-  (zero predicted noise) leave out;
+  trials and scored on its test trials: the learned back-off with a perfect regressor of its training
+  target, which the true-labels rows (zero predicted noise) leave out. Not a bound: where the target also
+  holds a trial's constant heading misalignment (a phone's field), a regressor's estimate from the signals
+  can back off better than on the target itself;
 * ``offline``: the ``vqf`` package's offline (non-causal) VQF at its defaults: the bound no causal
   filter should pass.
 
@@ -38,7 +40,7 @@ Each dataset's table ends with the rows a learned modulation could reach (``GOAL
 per-sensor goal (``goal_check``: at least ``GOAL_MARGIN`` below VQF's defaults and below the held-out TAGP,
 no group more than ``GOAL_MARGIN`` above VQF's defaults): where even the true-labels rows miss it, no
 motion classifier driving the per-state settings can meet it on that dataset; where the true-disturbance
-row misses it, no magnetometer-noise regressor driving the back-off can.
+row meets it, a magnetometer-noise regressor driving the back-off could.
 """
 from __future__ import annotations
 

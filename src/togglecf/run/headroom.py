@@ -384,10 +384,12 @@ def headroom_table(results: list, command: str, revision: str | None = None) -> 
              "defaults), learned on each fold's training trials and scored on its test trials; *true labels "
              "from TAGP*: the same search started at the fold's TAGP with τ_acc and τ_mag per state on the "
              "grid. *true disturbance*: VQF's defaults with the learned VQF's magnetic back-off driven by the "
-             "true field disturbance |η_m| (from the reference: what a perfect magnetometer-noise regressor would "
-             "predict; bounded, as the learned VQF's, by the core's rejection factor), σ_m chosen on each fold's "
-             "training trials. *offline VQF*: the `vqf` package's non-causal estimate at its defaults. Pairs are "
-             "chosen on the total RMSE; heading and inclination are at the chosen pair.", ""]
+             "true field disturbance |η_m| (from the reference: what a perfect regressor of the magnetometer-noise "
+             "model's training target would predict; bounded, as the learned VQF's, by the core's rejection "
+             "factor), σ_m chosen on each fold's training trials; not a bound, as that target also holds each "
+             "trial's constant heading misalignment. *offline VQF*: the `vqf` package's non-causal estimate at "
+             "its defaults. Pairs are chosen on the total RMSE; heading and inclination are at the chosen pair.",
+             ""]
     for r in results:
         groups = ["all"] + list(r["groups"])
         grid = ", ".join(f"{k} {{{', '.join(f'{v:g}' for v in vals)}}} s" for k, vals in r["grid"].items())

@@ -23,8 +23,8 @@ inclination RMSE [deg], ``metrics.trial_errors``) with:
 * ``true_disturbance``: VQF's defaults with the learned VQF's magnetic back-off (step 3 of
   ``filters.vqf_toggling``: the heading gain divided by 1 + min((|η_m| / σ_m)², f_reject − 1)) driven by the
   *true* field disturbance η_m (``learn.labels.make_targets``: the measured field minus the reference
-  orientation's view of the earth field, where the reference is valid; what a perfect magnetometer-noise
-  regressor would predict), σ_m chosen from ``HeadroomSettings.disturbance_scales`` on each fold's training
+  orientation's view of the earth field, where the reference is valid; the magnetometer-noise regressor's
+  training target), σ_m chosen from ``HeadroomSettings.disturbance_scales`` on each fold's training
   trials and scored on its test trials: the learned back-off with a perfect regressor of its training
   target, which the true-labels rows (zero predicted noise) leave out. Not a bound: where the target also
   holds a trial's constant heading misalignment (a phone's field), a regressor's estimate from the signals
@@ -89,8 +89,8 @@ LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in
 #: the per-sensor goal's margin (issue "learning that pays off", item 2): at least this fraction below VQF's
 #: defaults, below the held-out TAGP, and no group more than this fraction above VQF's defaults
 GOAL_MARGIN = 0.05
-#: the rows checked against that goal: the tuned pair, the ceilings of the learned parts (true labels, true
-#: disturbance), the oracles of the pair and the non-causal bound
+#: the rows checked against that goal: the tuned pair, the learned parts fed true inputs (true labels, true
+#: disturbance: the latter no bound), the oracles of the pair and the non-causal bound
 GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "true_disturbance", "group_oracle", "trial_oracle",
              "offline")
 #: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)

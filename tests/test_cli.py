@@ -222,7 +222,9 @@ def _write_library_noise_and_real_lines():
     warnings.warn_explicit("[15:12:45] WARNING: /ws/src/learner.cc:740: deprecated parameter", UserWarning,
                            "x.py", 1, module="togglecf.embedded.forest_export")
     warnings.warn_explicit("a real warning", UserWarning, "x.py", 1, module="togglecf.embedded.forest_export")
-    print("a real stderr line", file=sys.stderr)
+    # one write: under capfd sys.stderr goes straight to the capture file, beside the filter thread's writes
+    # of fd 2's lines; print() would write the text and its newline apart, and a thread's line could land between
+    sys.stderr.write("a real stderr line\n")
 
 
 @pytest.mark.slow

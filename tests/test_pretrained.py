@@ -21,7 +21,8 @@ from togglecf.learn.portable import PORTABLE_FORMAT, load_portable
 from togglecf.run.pretrained import NO_HARM_MARGIN, dataset_notice, model_card, no_harm_check
 from togglecf.toggling import load_toggling_filter
 from togglecf.toggling.inloop import ModelVQFTogglingFilter
-from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, portable_from_model_dir, pretrained_settings
+from togglecf.toggling.pretrained import (PRETRAINED_FILE, LearnedVQF, load_pretrained, portable_from_model_dir,
+                                         pretrained_settings)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -243,25 +244,33 @@ def retuned(tmp_path_factory):
     return d / "out" / "learned_vqf.npz"
 
 
+def _searched(retuned: Path) -> Path:
+    """The file with the re-learned settings: the guard's file where it kept them, else the unguarded one."""
+    unguarded = retuned.parent / "learned_vqf_unguarded.npz"
+    return unguarded if unguarded.is_file() else retuned
+
+
 def test_retune_keeps_the_forest_and_stores_the_searched_settings(retuned):
     from togglecf.toggling.gains import VQFGainSearch
     from togglecf.toggling.pretrained import pretrained_settings
-    pre, new = load_portable(PRETRAINED_FILE), load_portable(retuned)
+    pre, new, searched = load_portable(PRETRAINED_FILE), load_portable(retuned), load_portable(_searched(retuned))
     for name, a in pre.models.forest.as_arrays().items():  # the models are not retrained
         assert np.array_equal(a, new.models.forest.as_arrays()[name]), name
+        assert np.array_equal(a, searched.models.forest.as_arrays()[name]), name
     assert new.models.schema_hash == pre.models.schema_hash
     assert np.array_equal(new.models.feature_low, pre.models.feature_low)
     meta = new.metadata
     assert meta["retuned_from"] == {"file": PRETRAINED_FILE.name, "sha256": file_sha256(PRETRAINED_FILE),
                                     "recipe": pre.metadata.get("recipe")}
     assert meta["retune_trials"] == RETUNE_TRIALS.split(",")
-    assert set(meta["search"]) == set(pre.gains) == set(new.gains)  # 9D and 6D, as the pretrained has both
+    assert set(meta["search"]) == set(pre.gains) == set(new.gains) == set(meta["guard"])  # 9D and 6D, as shipped
     grid = VQFGainSearch(tau_acc=(2.0, 3.0, 5.0))
+    core = json.loads(json.dumps(asdict(grid.start(pre.models.class_names))))
     for mode, rep in meta["search"].items():
         accepted = {p: v for p, v, _ in rep["history"][1:]}  # the coordinates the descent moved, and where to
-        s = new.gains[mode] if rep["kept"] == "search" else None
+        s = searched.gains[mode] if rep["kept"] == "search" else None
         if s is not None:  # the stored settings are the descent's end: its accepted steps applied to the core
-            start = asdict(grid.start(pre.models.class_names))
+            start = dict(core)
             for p, v in accepted.items():
                 name, _, state = p.partition("[")
                 if state:
@@ -269,12 +278,16 @@ def test_retune_keeps_the_forest_and_stores_the_searched_settings(retuned):
                     start[name][list(pre.models.class_names).index(state[:-1])] = v
                 else:
                     start[name] = v
-            assert json.loads(json.dumps(start)) == s
+            assert start == s
             assert set(s["tau_acc_states"]) <= {2.0, 3.0, 5.0}  # from the test's grid, not the pretrained's
         else:
-            assert new.gains[mode] == pre.gains[mode]
+            assert searched.gains[mode] == pre.gains[mode]
+        # what runs: the searched settings where the guard kept them, else the core's (learning off)
+        assert new.gains[mode] == (searched.gains[mode] if meta["guard"][mode]["passed"] else core), mode
         use_mag = mode == "vqf_9d"
         assert LearnedVQF(100.0, use_mag=use_mag, model=retuned).settings == pretrained_settings(use_mag, retuned)
+        if not meta["guard"][mode]["passed"]:
+            assert LearnedVQF(100.0, use_mag=use_mag, model=retuned).settings.learning_off(use_mag)
 
 
 def test_retuned_is_not_worse_on_the_objective_it_minimised(retuned):
@@ -285,7 +298,7 @@ def test_retuned_is_not_worse_on_the_objective_it_minimised(retuned):
     from togglecf.data.broad import open_index
     from togglecf.toggling.gains import MODES, objective_value, settings_from_dict, trial_datasets, trial_total_rmse
     from togglecf.filters.vqf_toggling import VQFTogglingSettings
-    new = load_portable(retuned)
+    new = load_portable(_searched(retuned))
     index = open_index([str(RETUNE_DATA)])
     trials = [index.load(n) for n in index.select(RETUNE_TRIALS)]
     preds = [new.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in trials]
@@ -300,6 +313,68 @@ def test_retuned_is_not_worse_on_the_objective_it_minimised(retuned):
         mine = trial_total_rmse(settings_from_dict(VQFTogglingSettings, new.gains[mode]), trials, preds, use_mag)
         assert objective_value(new.metadata["objective"], mine, core, trial_datasets(trials)) == pytest.approx(
             kept, abs=1e-12)  # the stored settings score what the search reported
+        guard = load_portable(retuned).metadata["guard"][mode]
+        assert np.allclose(guard["rmse_core"], core, rtol=0, atol=1e-12)  # the guard's core: the same runs
+
+
+def test_guard_rule_is_the_descents_one_se_step_on_held_out_trials():
+    """The guard keeps re-learned settings only when the held-out objective falls by more than one
+    standard error of the per-trial change: a consistent 10 % gain passes, the same mean with a
+    scatter wider than it does not, a loss never does, fewer than two finite trials never do."""
+    from togglecf.run.pretrained import guard_rule
+    core = np.array([2.0, 3.0, 4.0, 5.0])
+    ds = np.array([""] * 4)
+    sure = guard_rule("worst_dataset_log_ratio", core * 0.9, core, ds)
+    assert sure["passed"] and sure["n"] == 4
+    assert sure["gain"] == pytest.approx(1.001 * np.log(0.9), rel=1e-12)  # the mean log ratio (+ the tie-break)
+    assert sure["margin"] == pytest.approx(0.0, abs=1e-12)  # no scatter: one SE is 0
+    ratios = np.exp(np.array([-0.5, 0.4, -0.4, 0.1]))  # mean -0.1, one SE 0.21: not beyond its scatter
+    assert not guard_rule("worst_dataset_log_ratio", core * ratios, core, ds)["passed"]
+    ratios = np.exp(np.array([-0.12, -0.08, -0.11, -0.09]))  # mean -0.1, one SE 0.009: kept
+    assert guard_rule("worst_dataset_log_ratio", core * ratios, core, ds)["passed"]
+    assert not guard_rule("worst_dataset_log_ratio", core * 1.1, core, ds)["passed"]
+    one = guard_rule("worst_dataset_log_ratio", [1.0, np.nan, np.nan, np.nan], core, ds)
+    assert not one["passed"] and one["n"] == 1 and "at least 2" in one["reason"]
+    assert guard_rule("mean_rmse", core - 0.5, core, ds)["gain"] == pytest.approx(-0.5)  # RMSE objective: in deg
+
+
+def test_guard_checks_each_fold_on_trials_it_did_not_relearn_on(mini_index, monkeypatch):
+    """``relearning_guard`` re-learns on all trials but a fold's and scores that fold: each held-out
+    trial's RMSE is that of the settings re-learned without it. The re-learning is replaced by a stub
+    that records its trials and returns fixed settings (τ_acc 1 s in every state), so the held-out
+    RMSEs are the filter's with those settings, recomputed here."""
+    import togglecf.run.pretrained as rp
+    from togglecf.toggling.gains import VQFGainSearch, trial_total_rmse
+    if not PRETRAINED_FILE.is_file():
+        pytest.skip("this checkout ships no pretrained model")
+    pm = load_pretrained()
+    names = mini_index.select(None)
+    trials = [mini_index.load(n) for n in names]
+    preds = [pm.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in trials]
+    search = VQFGainSearch()
+    fixed = VQFTogglingSettings(states=tuple(pm.models.class_names), tau_acc_states=(1.0,) * len(pm.models.class_names),
+                                modulation_tau=3.0)
+    seen = []
+
+    def stub(tr, pr, pm_, modes, search_, jobs=1, log=None):
+        seen.append([t.name for t in tr])
+        return {m: asdict(fixed) for m in modes}, {}
+    monkeypatch.setattr(rp, "relearn_settings", stub)
+    out = rp.relearning_guard(trials, preds, pm, ["vqf_9d"], search, folds=3)["vqf_9d"]
+    assert sorted(sum(out["folds"], [])) == sorted(names) and len(out["folds"]) == 3
+    for fit, held in zip(seen, out["folds"]):
+        assert not set(fit) & set(held) and sorted(fit + held) == sorted(names)
+    assert np.allclose(out["rmse_relearned"], trial_total_rmse(fixed, trials, preds, True), rtol=0, atol=1e-12)
+    decision = rp.guard_rule(search.objective, out["rmse_relearned"], out["rmse_core"], [""] * len(names))
+    assert out["passed"] == decision["passed"] and out["gain"] == pytest.approx(decision["gain"], abs=1e-12)
+    few = rp.relearning_guard(trials[:2], preds[:2], pm, ["vqf_9d"], search)["vqf_9d"]
+    assert not few["passed"] and "at least 3" in few["reason"]
+
+
+def test_no_guard_only_with_from_pretrained(capsys):
+    from togglecf.cli.main import main
+    assert main(["train", "--no-guard"]) != 0
+    assert "--no-guard: only with --from-pretrained" in capsys.readouterr().err
 
 
 def test_retuned_model_runs_in_evaluate(retuned, capsys):

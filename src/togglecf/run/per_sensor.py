@@ -8,9 +8,12 @@ nested; 0 stands for all of them), on those ``n`` recordings only:
 
 * ``vqf_tuned``: the VQF core at its TAGP over τ_acc × τ_mag (the study's ``[baselines.vqf_core]``
   grid) on the ``n`` recordings: what tuning VQF's two time constants on the same data gives;
-* ``relearned``: ``togglecf train --from-pretrained`` (``run.pretrained.retune_pretrained``, 9D) from a
-  base model that never saw the dataset (``bases``, e.g. from ``base_models``: the pretrained recipe trained on the other
-  datasets, e.g. leave-one-dataset-out's ``without_<name>/models``);
+* ``relearned``: the settings re-learned by ``togglecf train --from-pretrained`` (``run.pretrained.retune_pretrained``,
+  9D) from a base model that never saw the dataset (``bases``, e.g. from ``base_models``: the pretrained recipe
+  trained on the other datasets, e.g. leave-one-dataset-out's ``without_<name>/models``), without its guard;
+* ``guarded``: what that command writes: the re-learned settings where its guard (``run.pretrained.
+  relearning_guard``: re-learned on 2/3 of the ``n`` recordings, checked on the rest, 3 times) finds they beat the
+  VQF core by one standard error, else the VQF core (fewer than 3 recordings: always the core);
 * ``scratch``: ``togglecf train`` (the default recipe, gain mode ``vqf_9d``) on the ``n`` recordings
   (sizes of ``scratch_sizes`` only: it trains the models too);
 
@@ -53,9 +56,9 @@ __all__ = ["PerSensorConfig", "ROWS", "LEARNED_ROWS", "training_subsets", "vqf_g
 log = logging.getLogger(__name__)
 
 #: the rows of the tables: VQF at its defaults, VQF tuned on the same recordings, the two learned ones
-ROWS = ("vqf_defaults", "vqf_tuned", "relearned", "scratch")
+ROWS = ("vqf_defaults", "vqf_tuned", "relearned", "guarded", "scratch")
 #: the learned rows, each compared with VQF's defaults and with ``vqf_tuned``
-LEARNED_ROWS = ("relearned", "scratch")
+LEARNED_ROWS = ("relearned", "guarded", "scratch")
 
 
 @dataclass(frozen=True)
@@ -111,21 +114,26 @@ def _tagp_on(grid: dict, scored: dict, names) -> dict:
 def _fold_task(root: Path, name: str, k: int, test: list, subsets: dict, scratch_sizes, base_model, out_dir: Path,
                config, log_level) -> dict:
     """One fold of one dataset (a task): for each training size, re-learn from ``base_model`` and (sizes
-    of ``scratch_sizes``) train from scratch on the subset, and score ``test``. Returns ``{size: {row:
-    {trial: errors}}}`` for the learned rows."""
+    of ``scratch_sizes``) train from scratch on the subset, and score ``test``. Returns ``{size: ({row:
+    {trial: errors}} for the learned rows, whether the guard kept the re-learned settings or None)}``."""
     follow_parent_logging(log_level)
     index = DatasetIndex.from_dir(root)
     loaded = {n: index.load(n) for n in test}
     out = {}
     for size, subset in subsets.items():
         t0 = time.perf_counter()
-        rows = {}
+        rows, kept = {}, None
         if base_model is not None:
             where = out_dir / f"fold{k}" / f"n{size or 'all'}"
-            path = retune_pretrained(config, data_dir=str(root), trials=subset, out=where / "relearned",
-                                     model=base_model, verbose=False, modes=("vqf_9d",))["path"]
-            spec = FilterSpec(LEARNED_VQF, models=str(path))
-            rows["relearned"] = {n: score_trial(t, spec)[0].errors for n, t in loaded.items()}
+            res = retune_pretrained(config, data_dir=str(root), trials=subset, out=where / "relearned",
+                                    model=base_model, verbose=False, modes=("vqf_9d",))
+            kept = bool(res["guard"]["vqf_9d"]["passed"])
+            spec = FilterSpec(LEARNED_VQF, models=str(res["path"]))
+            rows["guarded"] = {n: score_trial(t, spec)[0].errors for n, t in loaded.items()}
+            rows["relearned"] = rows["guarded"]  # the guard kept them, or they are the core's anyway
+            if res["unguarded_path"] is not None:
+                spec = FilterSpec(LEARNED_VQF, models=str(res["unguarded_path"]))
+                rows["relearned"] = {n: score_trial(t, spec)[0].errors for n, t in loaded.items()}
         if size in scratch_sizes:
             cfg = load_config(config)
             cfg["gains"]["modes"] = ["vqf_9d"]
@@ -133,7 +141,7 @@ def _fold_task(root: Path, name: str, k: int, test: list, subsets: dict, scratch
             run_training(cfg, data_dir=str(root), trials=subset, out=model_dir, verbose=False)
             spec = FilterSpec(VQF_TOGGLING, models=str(model_dir))
             rows["scratch"] = {n: score_trial(t, spec)[0].errors for n, t in loaded.items()}
-        out[size] = rows
+        out[size] = (rows, kept)
         log.info(f"  {name} fold {k}: {len(subset)} training recordings, {len(test)} scored in "
                  f"{time.perf_counter() - t0:.0f} s")
     return out
@@ -172,9 +180,9 @@ def per_sensor(dirs, out_dir, bases: dict | None = None, settings: PerSensorConf
                jobs: int | None = None, store=None, backend=None) -> dict:
     """The protocol of the module docstring on each directory of ``dirs``. ``bases``: dataset
     name -> the base of the re-learning (a portable file or a ``togglecf train`` directory that never
-    saw that dataset); a dataset without one has no ``relearned`` row. Returns ``{dataset: {"folds":
-    [[trial, ...], ...], "grid": {...}, "sizes": {size: {row: {trial: errors}}}, "tuned": {size:
-    [params per fold]}}}``."""
+    saw that dataset); a dataset without one has no ``relearned`` and ``guarded`` rows. Returns ``{dataset:
+    {"folds": [[trial, ...], ...], "grid": {...}, "sizes": {size: {row: {trial: errors}}}, "tuned": {size:
+    [params per fold]}, "guard_kept": {size: [bool per fold]}}}``."""
     settings = settings or PerSensorConfig()
     bases = bases or {}
     out_dir = Path(out_dir)
@@ -190,7 +198,7 @@ def per_sensor(dirs, out_dir, bases: dict | None = None, settings: PerSensorConf
         log.info(f"per sensor: {d.name}: VQF's grid ({len(scored)} points x {len(names)} trials) in "
                  f"{time.perf_counter() - t0:.0f} s")
         base = _base_portable(bases.get(d.name), out_dir / d.name / "base_learned_vqf.npz")
-        plan = {"folds": folds, "grid": grid, "sizes": {}, "tuned": {}}
+        plan = {"folds": folds, "grid": grid, "sizes": {}, "tuned": {}, "guard_kept": {}}
         for k, test in enumerate(folds):
             train = [n for n in names if n not in test]
             subsets = training_subsets(train, settings.sizes, settings.seed + k)
@@ -208,10 +216,12 @@ def per_sensor(dirs, out_dir, bases: dict | None = None, settings: PerSensorConf
     # forkserver: a task trains XGBoost, whose OpenMP runtime does not survive a fork (LocalBackend)
     backend = backend or LocalBackend(min(jobs or os.cpu_count() or 1, max(1, len(tasks))), start_method="forkserver")
     done = run_tasks(backend, tasks, desc="per sensor", unit="fold")
-    for (name, _), sizes in done.items():
-        for size, rows in sizes.items():
+    for (name, k), sizes in sorted(done.items()):
+        for size, (rows, kept) in sizes.items():
             for row, per in rows.items():
                 plans[name]["sizes"][size].setdefault(row, {}).update(per)
+            if kept is not None:
+                plans[name]["guard_kept"].setdefault(size, []).append(kept)
     return plans
 
 
@@ -250,16 +260,19 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
              "Each dataset alone: folds by whole trial within it; each row learned or tuned on *n* of the fold's "
              "training recordings only (*all*: every one), every held-out trial scored. Mean total RMSE [°] (BROAD's "
              "metric). `vqf_defaults`: VQF at its defaults; `vqf_tuned`: VQF with τ_acc × τ_mag at their TAGP on the "
-             "same *n* recordings; `relearned`: `togglecf train --from-pretrained` from a model that never saw the "
-             "dataset; `scratch`: `togglecf train` on the *n* recordings. *vs* columns: relative change of the mean, "
+             "same *n* recordings; `relearned`: the settings re-learned by `togglecf train --from-pretrained` from a "
+             "model that never saw the dataset, without its guard; `guarded`: what that command writes, the "
+             "re-learned settings where its guard (re-learned on 2/3 of the *n* recordings, checked on the rest, 3 "
+             "times) finds they beat VQF's core by one standard error, else the core (*guard kept*: in how many "
+             "folds; below 3 recordings never); `scratch`: `togglecf train` on the *n* recordings. *vs* columns: relative change of the mean, "
              f"wins / ties / losses per trial (tie: |Δ| < {TIE_DEG}°), two-sided Wilcoxon p; *worst group*: the group "
              "(≥ 2 trials) where the learned row does worst against VQF's defaults.", ""]
     for ds, plan in results.items():
         index = DatasetIndex.from_dir(by_name[ds])
         lines += [f"## {ds} ({sum(len(f) for f in plan['folds'])} trials, {len(plan['folds'])} folds)", "",
-                  "| n | " + " | ".join(f"`{r}`" for r in ROWS) + " | relearned vs defaults | relearned vs tuned | "
-                  "relearned worst group | scratch vs defaults | scratch vs tuned | scratch worst group |",
-                  "|---" * (len(ROWS) + 7) + "|"]
+                  "| n | " + " | ".join(f"`{r}`" for r in ROWS) + " | guard kept | "
+                  + " | ".join(f"{r} {c}" for r in LEARNED_ROWS for c in ("vs defaults", "vs tuned", "worst group"))
+                  + " |", "|---" * (len(ROWS) + 2 + 3 * len(LEARNED_ROWS)) + "|"]
         for size in sorted(plan["sizes"], key=lambda s: (s == 0, s)):
             rows = plan["sizes"][size]
             names = sorted(rows["vqf_defaults"])
@@ -271,16 +284,19 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
                     continue
                 cmp += [versus(rows[r], rows["vqf_defaults"], names), versus(rows[r], rows["vqf_tuned"], names),
                         worst_group(rows[r], rows["vqf_defaults"], index.groups)]
-            lines.append(f"| {size or 'all'} | " + " | ".join(cells + cmp) + " |")
+            kept = plan.get("guard_kept", {}).get(size, [])
+            guard = f"{sum(kept)}/{len(kept)}" if kept else ""
+            lines.append(f"| {size or 'all'} | " + " | ".join(cells + [guard] + cmp) + " |")
         lines.append("")
     return "\n".join(lines)
 
 
 def per_sensor_json(results: dict) -> dict:
-    """The tables' source numbers: dataset -> folds, the tuned pairs and size -> row -> trial ->
-    {"total", "heading", "inclination"}."""
+    """The tables' source numbers: dataset -> folds, the tuned pairs, the guard's decision per fold and
+    size -> row -> trial -> {"total", "heading", "inclination"}."""
     keep = ("total", "heading", "inclination")
     return {ds: {"folds": plan["folds"], "tuned": {str(s): p for s, p in plan["tuned"].items()},
+                 "guard_kept": {str(s): k for s, k in plan.get("guard_kept", {}).items()},
                  "sizes": {str(s): {r: {n: {k: e[k] for k in keep} for n, e in per.items()}
                                     for r, per in rows.items()} for s, rows in plan["sizes"].items()}}
             for ds, plan in results.items()}

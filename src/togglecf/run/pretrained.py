@@ -25,6 +25,7 @@ from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.registry import VQF_TOGGLING
 from togglecf.run.config import load_config
 from togglecf.run.train import run_training
+from togglecf.learn.folds import trial_folds
 from togglecf.learn.portable import load_portable, save_portable
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.toggling.gains import (
@@ -33,6 +34,7 @@ from togglecf.toggling.gains import (
     learn_modes,
     objective_value,
     settings_from_dict,
+    step_margin,
     trial_datasets,
     trial_total_rmse,
 )
@@ -40,12 +42,17 @@ from togglecf.toggling.pretrained import PRETRAINED_FILE, VQF_MODES, load_pretra
 
 __all__ = ["NO_HARM_MARGIN", "train_pretrained", "train_pretrained_models", "write_pretrained", "write_model_card",
            "no_harm_check", "model_card", "dataset_notice",
-           "retune_pretrained", "RETUNED_FILE"]
+           "retune_pretrained", "relearn_settings", "relearning_guard", "guard_rule", "RETUNED_FILE",
+           "UNGUARDED_FILE", "GUARD_FOLDS"]
 
 log = logging.getLogger(__name__)
 
 #: the file ``togglecf train --from-pretrained`` writes in its ``--out`` directory
 RETUNED_FILE = "learned_vqf.npz"
+#: beside it, when the guard sent a mode back to the core: the re-learned settings it did not keep
+UNGUARDED_FILE = "learned_vqf_unguarded.npz"
+#: folds by whole trial of the re-learning's guard (``relearning_guard``)
+GUARD_FOLDS = 3
 
 #: the pretrained recipe may be at most this much worse (relative) than VQF on a dataset it never saw
 NO_HARM_MARGIN = 0.02
@@ -232,7 +239,7 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
 
 
 def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=None, verbose: bool = True,
-                      modes=None) -> dict:
+                      modes=None, guard_folds: int = GUARD_FOLDS) -> dict:
     """``togglecf train --from-pretrained``: re-learn only the learned VQF's settings (9D and 6D, the
     modes the pretrained model has) on the selected trials, keeping the pretrained forest as it is.
 
@@ -246,10 +253,18 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
     each mode keeps whichever of the two scores lower on the descent's objective (``kept``), so on
     these trials the result is never worse than the pretrained model, nor than the core.
 
+    That is in-sample. The guard (``relearning_guard``, ``guard_folds`` folds by whole trial; 0: no
+    guard) checks the re-learning on recordings it did not see: a mode keeps its re-learned settings
+    only when they beat the core there by more than one standard error, else it runs the VQF core
+    (``guard_rule``).
+
     Writes ``out/learned_vqf.npz`` (``learn.portable``, the format of the shipped model; ``out``
-    default ``models/<run.name>-retuned``) with metadata naming the model it was re-tuned from and
-    the trials; ``modes``: the modes to re-learn (default: every one the model has; the others keep the
-    model's settings). Returns ``{"path", "modes": {mode: objectives, kept, history}, "timing_s"}``."""
+    default ``models/<run.name>-retuned``) with metadata naming the model it was re-tuned from, the
+    trials and the guard's decision; where the guard sent a mode back to the core, the re-learned
+    settings also go to ``out/learned_vqf_unguarded.npz`` (``UNGUARDED_FILE``). ``modes``: the modes to
+    re-learn (default: every one the model has; the others keep the model's settings). Returns
+    ``{"path", "unguarded_path" (None when the guard changed nothing), "modes": {mode: objectives, kept,
+    history}, "guard": {mode: decision}, "timing_s", "trials"}``."""
     t_start = time.perf_counter()
     cfg = load_config(config)
     run = cfg["run"]
@@ -272,37 +287,120 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
     preds = [pm.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in loaded]
     timing = {"predictions_s": time.perf_counter() - t0}
     search = VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
-    source = "the pretrained models' out-of-sample"
-    gains, report = dict(pm.gains), {}
+    jobs = int(run["nthread"])
     t0 = time.perf_counter()
-    for mode, settings, hist, _ in learn_modes(loaded, preds, pm.models, modes, vqf_search=search,
-                                               jobs=int(run["nthread"]), log=say, source=source):
-        report[mode] = _keep_better(mode, settings, hist, pm, loaded, preds, search)
-        gains[mode] = asdict(settings) if report[mode]["kept"] == "search" else pm.gains[mode]
-        say(f"{mode}: kept the {report[mode]['kept']}'s settings ({search.objective}: search "
-            f"{report[mode]['objective_search']:.4f}, pretrained {report[mode]['objective_pretrained']:.4f}, "
-            f"core {report[mode]['objective_core']:.4f})")
+    relearned, report = relearn_settings(loaded, preds, pm, modes, search, jobs=jobs, log=say)
     timing["gains_s"] = time.perf_counter() - t0
+    guard = {}
+    if guard_folds:
+        t0 = time.perf_counter()
+        guard = relearning_guard(loaded, preds, pm, modes, search, folds=guard_folds, jobs=jobs, log=say)
+        timing["guard_s"] = time.perf_counter() - t0
+    core = asdict(search.start(pm.models.class_names))
+    kept = {m: core if m in guard and not guard[m]["passed"] else relearned[m] for m in modes}
     data_files = {n: {"file": Path(index.available[n]).name, "sha256": file_sha256(index.available[n])} for n in names}
     metadata = {
         "recipe": "togglecf train --from-pretrained: the pretrained models kept, the learned VQF's settings "
-                  "re-learned on the trials below by the gain search of togglecf train ([gains.vqf])",
+                  "re-learned on the trials below by the gain search of togglecf train ([gains.vqf])"
+                  + (", kept where the guard passed, else the VQF core's" if guard else " (no guard)"),
         "togglecf": __version__,
         "retuned_from": {"file": source_path.name, "sha256": file_sha256(source_path),
                          "recipe": pm.metadata.get("recipe")},
         "retune_trials": names,
         "data_dir": [str(r) for r in index.root] if isinstance(index.root, (tuple, list)) else str(index.root),
-        "predictions": source, "objective": search.objective, "search": report,
+        "predictions": "the pretrained models' out-of-sample", "objective": search.objective, "search": report,
+        "guard": guard,
         "classes": list(pm.models.class_names),
         # the forest's training files and the re-tuning's: evaluate flags scores on either as in-sample
         "data_files": {**pm.metadata.get("data_files", {}), **{f"retuned:{n}": v for n, v in data_files.items()}},
-        "settings": {m: gains[m] for m in modes},
+        "settings": kept,
     }
-    path = save_portable(out_dir / RETUNED_FILE, pm.models, gains, metadata)
+    path = save_portable(out_dir / RETUNED_FILE, pm.models, {**pm.gains, **kept}, metadata)
+    unguarded = None
+    if kept != {m: relearned[m] for m in modes}:  # the guard sent a mode back: its re-learned settings, for the record
+        unguarded = save_portable(out_dir / UNGUARDED_FILE, pm.models, {**pm.gains, **relearned},
+                                  {**metadata, "recipe": metadata["recipe"] + "; this file: the re-learned settings "
+                                   "the guard did not keep", "settings": relearned})
     timing["total_s"] = time.perf_counter() - t_start
     say(f"wrote {path} in {timing['total_s']:.1f} s (predictions {timing['predictions_s']:.1f} s, "
-        f"gains {timing['gains_s']:.1f} s)")
-    return {"path": path, "modes": report, "timing_s": timing, "trials": names}
+        f"gains {timing['gains_s']:.1f} s" + (f", guard {timing['guard_s']:.1f} s)" if guard else ")"))
+    return {"path": path, "unguarded_path": unguarded, "modes": report, "guard": guard, "timing_s": timing,
+            "trials": names}
+
+
+def relearn_settings(trials, predictions, pm, modes, search, jobs: int = 1, log=None) -> tuple[dict, dict]:
+    """The re-learning of ``retune_pretrained`` on ``trials`` (``predictions``: the pretrained models'
+    ``pm`` on them): per mode of ``modes``, the descent of ``gains.learn_modes`` (``search``: a
+    ``VQFGainSearch``) and the better of its end and the pretrained settings (``_keep_better``).
+    Returns ``({mode: settings dict}, {mode: objectives, kept, history})``."""
+    say = log or (lambda msg: None)
+    settings_out, report = {}, {}
+    for mode, settings, hist, _ in learn_modes(trials, predictions, pm.models, modes, vqf_search=search, jobs=jobs,
+                                               log=say, source="the pretrained models' out-of-sample"):
+        report[mode] = _keep_better(mode, settings, hist, pm, trials, predictions, search)
+        settings_out[mode] = asdict(settings) if report[mode]["kept"] == "search" else pm.gains[mode]
+        say(f"{mode}: kept the {report[mode]['kept']}'s settings ({search.objective}: search "
+            f"{report[mode]['objective_search']:.4f}, pretrained {report[mode]['objective_pretrained']:.4f}, "
+            f"core {report[mode]['objective_core']:.4f})")
+    return settings_out, report
+
+
+def relearning_guard(trials, predictions, pm, modes, search, folds: int = GUARD_FOLDS, jobs: int = 1,
+                     log=None) -> dict:
+    """Does re-learning pay on recordings it did not see? ``folds`` test sets by whole trial over
+    ``trials`` (``learn.folds.trial_folds``, at most one per trial); for each, the settings re-learned
+    (``relearn_settings``) on the other trials score the held-out ones, beside the VQF core
+    (``search.start``). ``guard_rule`` decides per mode from the held-out trials' total RMSEs.
+    Fewer than 3 trials: no check possible (a fold must re-learn on 2), the mode is not kept.
+    Returns ``{mode: {"passed", "gain", "margin", "n", "folds", "rmse_relearned", "rmse_core", "reason"}}``
+    (RMSEs [deg] per trial in the order of ``trials``)."""
+    say = log or (lambda msg: None)
+    names = [t.name for t in trials]
+    if len(trials) < 3:
+        reason = f"{len(trials)} recordings: the guard needs at least 3 (2 to re-learn on, 1 to check)"
+        say(f"guard: {reason}; the VQF core kept")
+        return {m: {"passed": False, "reason": reason, "n": 0, "folds": []} for m in modes}
+    inner = trial_folds(names, min(int(folds), len(names)))
+    start = search.start(pm.models.class_names)
+    rmse = {m: np.full(len(trials), np.nan) for m in modes}
+    for j, test in enumerate(inner):
+        fit = [i for i, n in enumerate(names) if n not in test]
+        held = [i for i, n in enumerate(names) if n in test]
+        got, _ = relearn_settings([trials[i] for i in fit], [predictions[i] for i in fit], pm, modes, search, jobs)
+        for m in modes:
+            rmse[m][held] = trial_total_rmse(settings_from_dict(VQFTogglingSettings, got[m]),
+                                             [trials[i] for i in held], [predictions[i] for i in held], MODES[m][1])
+        say(f"guard: fold {j + 1}/{len(inner)} re-learned on {len(fit)} trials, checked on {len(held)}")
+    out = {}
+    for m in modes:
+        core = trial_total_rmse(start, trials, predictions, MODES[m][1])
+        out[m] = {**guard_rule(search.objective, rmse[m], core, trial_datasets(trials)), "folds": inner,
+                  "rmse_relearned": rmse[m].tolist(), "rmse_core": core.tolist()}
+        say(f"guard {m}: re-learned vs core on the held-out trials {out[m]['gain']:+.4f} ({search.objective}), "
+            f"one SE {out[m]['margin']:.4f}: " + ("kept" if out[m]["passed"] else "not kept, the VQF core runs"))
+    return out
+
+
+def guard_rule(objective: str, rmse, core_rmse, datasets) -> dict:
+    """The guard's decision from held-out per-trial total RMSEs [deg] of the re-learned settings
+    (``rmse``) and of the core (``core_rmse``): ``gain``, the change of the descent's ``objective``
+    from the core to the re-learned settings, must be below minus ``margin``, one standard error of
+    its per-trial change (``gains.step_margin``, the rule by which the descent takes a step), on at
+    least 2 trials with a finite RMSE. Returns ``{"passed", "gain", "margin", "n", "reason"}``."""
+    rmse, core_rmse = np.asarray(rmse, np.float64), np.asarray(core_rmse, np.float64)
+    datasets = np.asarray(datasets)
+    ok = np.isfinite(rmse) & np.isfinite(core_rmse) & (core_rmse > 0) & (rmse > 0)
+    n = int(ok.sum())
+    if n < 2:
+        return {"passed": False, "gain": float("nan"), "margin": float("nan"), "n": n,
+                "reason": f"{n} held-out trials with a finite error: at least 2 needed"}
+    rmse, core_rmse, datasets = rmse[ok], core_rmse[ok], datasets[ok]
+    gain = objective_value(objective, rmse, core_rmse, datasets) - objective_value(objective, core_rmse, core_rmse,
+                                                                                   datasets)
+    margin = step_margin("one_se", objective, rmse, core_rmse, datasets)
+    passed = bool(gain < -margin)
+    return {"passed": passed, "gain": float(gain), "margin": float(margin), "n": n,
+            "reason": "beat the core by more than one SE" if passed else "not better than the core by one SE"}
 
 
 def _keep_better(mode, settings, hist, pm, trials, preds, search) -> dict:

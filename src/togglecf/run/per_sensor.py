@@ -264,7 +264,8 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
              "model that never saw the dataset, without its guard; `guarded`: what that command writes, the "
              "re-learned settings where its guard (re-learned on 2/3 of the *n* recordings, checked on the rest, 3 "
              "times) finds they beat VQF's core by one standard error, else the core (*guard kept*: in how many "
-             "folds; below 3 recordings never); `scratch`: `togglecf train` on the *n* recordings. *vs* columns: relative change of the mean, "
+             "folds; below 3 recordings never); `scratch`: `togglecf train` on the *n* recordings. "
+             "*vs* columns: relative change of the mean, "
              f"wins / ties / losses per trial (tie: |Δ| < {TIE_DEG}°), two-sided Wilcoxon p; *worst group*: the group "
              "(≥ 2 trials) where the learned row does worst against VQF's defaults.", ""]
     for ds, plan in results.items():

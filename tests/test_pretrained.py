@@ -231,7 +231,7 @@ sweeps = 1
 
 @pytest.fixture(scope="module")
 def retuned(tmp_path_factory):
-    """``togglecf train --from-pretrained`` on three Nexus 5 trials, run through the command line."""
+    """``togglecf train --from-pretrained --guard`` on three Nexus 5 trials, run through the command line."""
     if not (RETUNE_DATA / "trials.json").is_file():
         pytest.skip(f"the phone data is not beside the repository ({RETUNE_DATA})")
     if not PRETRAINED_FILE.is_file():
@@ -240,7 +240,7 @@ def retuned(tmp_path_factory):
     d = tmp_path_factory.mktemp("retune")
     (d / "small.toml").write_text(RETUNE_CONFIG)
     assert main(["train", "--from-pretrained", "--config", str(d / "small.toml"), "--data", str(RETUNE_DATA),
-                 "--trials", RETUNE_TRIALS, "--out", str(d / "out")]) == 0
+                 "--trials", RETUNE_TRIALS, "--out", str(d / "out"), "--guard"]) == 0
     return d / "out" / "learned_vqf.npz"
 
 
@@ -371,10 +371,22 @@ def test_guard_checks_each_fold_on_trials_it_did_not_relearn_on(mini_index, monk
     assert not few["passed"] and "at least 3" in few["reason"]
 
 
-def test_no_guard_only_with_from_pretrained(capsys):
+def test_without_guard_the_file_holds_the_search(retuned, tmp_path):
+    """The default (no --guard): the same re-learning, its settings written as they are, no guard in the
+    metadata, no second file."""
     from togglecf.cli.main import main
-    assert main(["train", "--no-guard"]) != 0
-    assert "--no-guard: only with --from-pretrained" in capsys.readouterr().err
+    (tmp_path / "small.toml").write_text(RETUNE_CONFIG)
+    assert main(["train", "--from-pretrained", "--config", str(tmp_path / "small.toml"), "--data", str(RETUNE_DATA),
+                 "--trials", RETUNE_TRIALS, "--out", str(tmp_path / "out")]) == 0
+    plain = load_portable(tmp_path / "out" / "learned_vqf.npz")
+    assert plain.metadata["guard"] == {} and not (tmp_path / "out" / "learned_vqf_unguarded.npz").exists()
+    assert plain.gains == load_portable(_searched(retuned)).gains  # the same descent, deterministic
+
+
+def test_guard_only_with_from_pretrained(capsys):
+    from togglecf.cli.main import main
+    assert main(["train", "--guard"]) != 0
+    assert "--guard: only with --from-pretrained" in capsys.readouterr().err
 
 
 def test_retuned_model_runs_in_evaluate(retuned, capsys):

@@ -201,11 +201,10 @@ def add_train_parser(subparsers):
                     "re-learn only its settings (9D and 6D, [gains.vqf] of the config) on the selected trials: "
                     "minutes; writes OUT/learned_vqf.npz (default OUT: models/<run.name>-retuned), which "
                     "--filter learned_vqf --models FILE runs (default: off, train everything)")
-    sp.add_argument("--no-guard", dest="guard", action="store_false",
-                    help="with --from-pretrained: keep the re-learned settings without checking them on recordings "
-                    "they were not learned on (default: the guard re-learns on 2/3 of the trials, checks on the "
-                    "rest, 3 times, and keeps a mode's settings only where they beat the VQF core by one standard "
-                    "error; else the core runs)")
+    sp.add_argument("--guard", action="store_true",
+                    help="with --from-pretrained: check the re-learning on recordings it was not learned on (re-learn "
+                    "on 2/3 of the trials, score the rest, 3 times) and keep a mode's settings only where they beat the "
+                    "VQF core there by one standard error; else the core runs (default: off)")
     add_backend_args(sp)
     sp.add_argument("--distributed-fit", action="store_true", default=None,
                     help="with --backend dask: train the final models with xgboost.dask on the workers "

@@ -16,8 +16,8 @@ def cmd_train(args):
     cfg["run"].update({k: v for k, v in backend_settings(args, cfg["run"]).items() if k in cfg["run"]})
     if getattr(args, "distributed_fit", None):
         cfg["run"]["distributed_fit"] = True
-    if not args.guard and args.from_pretrained is None:
-        raise ValueError("--no-guard: only with --from-pretrained (the guard checks a re-learning)")
+    if args.guard and args.from_pretrained is None:
+        raise ValueError("--guard: only with --from-pretrained (the guard checks a re-learning)")
     if args.from_pretrained is not None:  # the pretrained models kept, their settings re-learned
         retune_pretrained(cfg, data_dir=args.data, trials=args.trials, out=args.out, model=args.from_pretrained or None,
                           guard_folds=GUARD_FOLDS if args.guard else 0)

@@ -8,10 +8,10 @@ nested; 0 stands for all of them), on those ``n`` recordings only:
 
 * ``vqf_tuned``: the VQF core at its TAGP over τ_acc × τ_mag (the study's ``[baselines.vqf_core]``
   grid) on the ``n`` recordings: what tuning VQF's two time constants on the same data gives;
-* ``relearned``: the settings re-learned by ``togglecf train --from-pretrained`` (``run.pretrained.retune_pretrained``,
-  9D) from a base model that never saw the dataset (``bases``, e.g. from ``base_models``: the pretrained recipe
-  trained on the other datasets, e.g. leave-one-dataset-out's ``without_<name>/models``), without its guard;
-* ``guarded``: what that command writes: the re-learned settings where its guard (``run.pretrained.
+* ``relearned``: ``togglecf train --from-pretrained`` (``run.pretrained.retune_pretrained``, 9D) from a base
+  model that never saw the dataset (``bases``, e.g. from ``base_models``: the pretrained recipe trained on the
+  other datasets, e.g. leave-one-dataset-out's ``without_<name>/models``);
+* ``guarded``: the same with ``--guard``: the re-learned settings where the guard (``run.pretrained.
   relearning_guard``: re-learned on 2/3 of the ``n`` recordings, checked on the rest, 3 times) finds they beat the
   VQF core by one standard error, else the VQF core (fewer than 3 recordings: always the core);
 * ``scratch``: ``togglecf train`` (the default recipe, gain mode ``vqf_9d``) on the ``n`` recordings
@@ -43,7 +43,7 @@ from togglecf.parallel.backend import LocalBackend, Task, run_tasks
 from togglecf.registry import LEARNED_VQF, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
 from togglecf.run.config import load_config
-from togglecf.run.pretrained import retune_pretrained, train_pretrained_models
+from togglecf.run.pretrained import GUARD_FOLDS, retune_pretrained, train_pretrained_models
 from togglecf.run.scoring import grid_points, score_trial
 from togglecf.run.study import load_study_config
 from togglecf.run.sweep import evaluate_trials
@@ -126,7 +126,7 @@ def _fold_task(root: Path, name: str, k: int, test: list, subsets: dict, scratch
         if base_model is not None:
             where = out_dir / f"fold{k}" / f"n{size or 'all'}"
             res = retune_pretrained(config, data_dir=str(root), trials=subset, out=where / "relearned",
-                                    model=base_model, verbose=False, modes=("vqf_9d",))
+                                    model=base_model, verbose=False, modes=("vqf_9d",), guard_folds=GUARD_FOLDS)
             kept = bool(res["guard"]["vqf_9d"]["passed"])
             spec = FilterSpec(LEARNED_VQF, models=str(res["path"]))
             rows["guarded"] = {n: score_trial(t, spec)[0].errors for n, t in loaded.items()}
@@ -260,10 +260,10 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
              "Each dataset alone: folds by whole trial within it; each row learned or tuned on *n* of the fold's "
              "training recordings only (*all*: every one), every held-out trial scored. Mean total RMSE [°] (BROAD's "
              "metric). `vqf_defaults`: VQF at its defaults; `vqf_tuned`: VQF with τ_acc × τ_mag at their TAGP on the "
-             "same *n* recordings; `relearned`: the settings re-learned by `togglecf train --from-pretrained` from a "
-             "model that never saw the dataset, without its guard; `guarded`: what that command writes, the "
-             "re-learned settings where its guard (re-learned on 2/3 of the *n* recordings, checked on the rest, 3 "
-             "times) finds they beat VQF's core by one standard error, else the core (*guard kept*: in how many "
+             "same *n* recordings; `relearned`: `togglecf train --from-pretrained` from a model that never saw the "
+             "dataset; `guarded`: the same with `--guard`, the re-learned settings where the guard (re-learned on "
+             "2/3 of the *n* recordings, checked on the rest, 3 times) finds they beat VQF's core by one standard "
+             "error, else the core (*guard kept*: in how many "
              "folds; below 3 recordings never); `scratch`: `togglecf train` on the *n* recordings. "
              "*vs* columns: relative change of the mean, "
              f"wins / ties / losses per trial (tie: |Δ| < {TIE_DEG}°), two-sided Wilcoxon p; *worst group*: the group "

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 RETUNED_FILE = "learned_vqf.npz"
 #: beside it, when the guard sent a mode back to the core: the re-learned settings it did not keep
 UNGUARDED_FILE = "learned_vqf_unguarded.npz"
-#: folds by whole trial of the re-learning's guard (``relearning_guard``)
+#: folds by whole trial of the re-learning's guard (``relearning_guard``; ``togglecf train --guard``)
 GUARD_FOLDS = 3
 
 #: the pretrained recipe may be at most this much worse (relative) than VQF on a dataset it never saw
@@ -239,7 +239,7 @@ def model_card(metadata: dict, lodo: dict | None, dirs, sha256: str) -> str:
 
 
 def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=None, verbose: bool = True,
-                      modes=None, guard_folds: int = GUARD_FOLDS) -> dict:
+                      modes=None, guard_folds: int = 0) -> dict:
     """``togglecf train --from-pretrained``: re-learn only the learned VQF's settings (9D and 6D, the
     modes the pretrained model has) on the selected trials, keeping the pretrained forest as it is.
 
@@ -253,10 +253,11 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
     each mode keeps whichever of the two scores lower on the descent's objective (``kept``), so on
     these trials the result is never worse than the pretrained model, nor than the core.
 
-    That is in-sample. The guard (``relearning_guard``, ``guard_folds`` folds by whole trial; 0: no
-    guard) checks the re-learning on recordings it did not see: a mode keeps its re-learned settings
-    only when they beat the core there by more than one standard error, else it runs the VQF core
-    (``guard_rule``).
+    That is in-sample. With ``guard_folds`` (``--guard``: ``GUARD_FOLDS``; 0, the default: no guard) the
+    guard (``relearning_guard``) checks the re-learning on recordings it did not see: a mode keeps its
+    re-learned settings only when they beat the core there by more than one standard error, else it
+    runs the VQF core (``guard_rule``). The check re-learns on fewer recordings than the result, so it
+    is pessimistic where more recordings still help.
 
     Writes ``out/learned_vqf.npz`` (``learn.portable``, the format of the shipped model; ``out``
     default ``models/<run.name>-retuned``) with metadata naming the model it was re-tuned from, the

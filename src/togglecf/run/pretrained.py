@@ -322,6 +322,7 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
         unguarded = save_portable(out_dir / UNGUARDED_FILE, pm.models, {**pm.gains, **relearned},
                                   {**metadata, "recipe": metadata["recipe"] + "; this file: the re-learned settings "
                                    "the guard did not keep", "settings": relearned})
+        say(f"the re-learned settings the guard did not keep: {unguarded} (runs as --models FILE too)")
     timing["total_s"] = time.perf_counter() - t_start
     say(f"wrote {path} in {timing['total_s']:.1f} s (predictions {timing['predictions_s']:.1f} s, "
         f"gains {timing['gains_s']:.1f} s" + (f", guard {timing['guard_s']:.1f} s)" if guard else ")"))

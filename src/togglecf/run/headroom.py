@@ -29,6 +29,11 @@ inclination RMSE [deg], ``metrics.trial_errors``) with:
   target, which the true-labels rows (zero predicted noise) leave out. Not a bound: where the target also
   holds a trial's constant heading misalignment (a phone's field), a regressor's estimate from the signals
   can back off better than on the target itself;
+* ``field_change``: the same back-off driven by a cue without reference and without learning, the change of
+  the measured field over ``FIELD_CHANGE_LAG`` in the earth frame of VQF's 6D estimate (``field_change``: the
+  gyroscope explains the field's turning, so an undisturbed field stays at the sensor's floor), σ_m chosen
+  from ``disturbance_scales`` as for ``true_disturbance``: how much of the back-off's value a physical cue that
+  any sensor computes reaches;
 * ``offline``: the ``vqf`` package's offline (non-causal) VQF at its defaults: the bound no causal
   filter should pass.
 
@@ -40,7 +45,8 @@ Each dataset's table ends with the rows a learned modulation could reach (``GOAL
 per-sensor goal (``goal_check``: at least ``GOAL_MARGIN`` below VQF's defaults and below the held-out TAGP,
 no group more than ``GOAL_MARGIN`` above VQF's defaults): where even the true-labels rows miss it, no
 motion classifier driving the per-state settings can meet it on that dataset; where the true-disturbance
-row meets it, a magnetometer-noise regressor driving the back-off could.
+row meets it, a magnetometer-noise regressor driving the back-off could, and the field-change row says how
+much of that a cue without learning reaches.
 """
 from __future__ import annotations
 
@@ -52,11 +58,13 @@ from pathlib import Path
 
 import numpy as np
 
+from togglecf.core import quaternion
 from togglecf.core.extras import require
 from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.provenance import generated_line, source_revision
 from togglecf.data.broad import DatasetIndex
 from togglecf.filters.prediction import PredictionLayout
+from togglecf.filters.vqf_core import VQFCoreFilter
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.labels import LabelSettings, make_targets, state_names
@@ -72,27 +80,30 @@ from togglecf.toggling.gains import VQFGainSearch, describe_gains
 
 __all__ = ["ROWS", "ORACLE_ROWS", "LABELS", "METRICS", "GOAL_MARGIN", "GOAL_ROWS", "HeadroomSettings",
            "headroom_settings", "finest_partition", "held_out_tagp", "true_disturbance_predictions",
+           "field_change", "field_change_predictions", "FIELD_CHANGE_LAG",
            "dataset_headroom", "group_mean", "goal_check", "headroom_table", "headroom_json", "run_headroom"]
 
 log = logging.getLogger(__name__)
 
 #: the rows of the table, in order (``defaults`` first: every other is compared with it)
 ROWS = ("defaults", "tagp_held_out", "tagp_in_sample", "group_oracle", "trial_oracle", "true_labels",
-        "true_labels_tagp", "true_disturbance", "offline")
+        "true_labels_tagp", "true_disturbance", "field_change", "offline")
 #: rows chosen on the trials they are scored on (in-sample ceilings)
 ORACLE_ROWS = ("tagp_in_sample", "group_oracle", "trial_oracle")
 #: column headers of the table
 LABELS = {"defaults": "VQF defaults", "tagp_held_out": "TAGP held out", "tagp_in_sample": "TAGP in-sample (oracle)",
           "group_oracle": "group oracle", "trial_oracle": "trial oracle", "true_labels": "true labels",
           "true_labels_tagp": "true labels from TAGP", "true_disturbance": "true disturbance",
-          "offline": "offline VQF"}
+          "field_change": "field change (no learning)", "offline": "offline VQF"}
 #: the per-sensor goal's margin (issue "learning that pays off", item 2): at least this fraction below VQF's
 #: defaults, below the held-out TAGP, and no group more than this fraction above VQF's defaults
 GOAL_MARGIN = 0.05
 #: the rows checked against that goal: the tuned pair, the learned parts fed true inputs (true labels, true
 #: disturbance: the latter no bound), the oracles of the pair and the non-causal bound
-GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "true_disturbance", "group_oracle", "trial_oracle",
-             "offline")
+GOAL_ROWS = ("tagp_held_out", "true_labels", "true_labels_tagp", "true_disturbance", "field_change", "group_oracle",
+             "trial_oracle", "offline")
+#: s: the interval over which ``field_change`` compares the field (chosen once, not searched)
+FIELD_CHANGE_LAG = 1.0
 #: BROAD's metrics reported (``metrics.trial_errors`` keys, degrees)
 METRICS = ("total", "heading", "inclination")
 #: the core's filter name (``registry``), run at VQF's defaults when given no parameters
@@ -204,20 +215,55 @@ def true_disturbance_predictions(trial, labels: LabelSettings, n_states: int) ->
     (``make_targets``' ``eta_mag``) where the reference is valid, NaN elsewhere, and no class probabilities
     (NaN: the learned VQF keeps its core's settings) nor accelerometer noise (zero)."""
     targets = make_targets(trial, labels)
+    eta = np.full((trial.n_samples, 3), np.nan)
+    eta[targets.valid] = targets.eta_mag[targets.valid]
+    return _disturbance_predictions(eta, n_states)
+
+
+def field_change(trial, lag_s: float = FIELD_CHANGE_LAG) -> np.ndarray:
+    """How much the measured field changed over the last ``lag_s`` [s] in the earth frame of VQF's 6D
+    estimate (the core at its defaults, 6D: causal, no magnetometer): ‖R(q₆(t)) m(t) − R(q₆(t − lag))
+    m(t − lag)‖ [µT] ``(N,)``, NaN for the first ``lag_s`` and where a sample is not finite. The 6D
+    estimate follows the sensor's turning, so in an undisturbed field this stays at the sensor's floor
+    (its noise and the 6D heading's drift over ``lag_s``); a disturbance entering, leaving or moving with
+    the sensor raises it. No reference and nothing learned."""
+    q6 = VQFCoreFilter(trial.fs, use_mag=False).update_batch(trial.gyr, trial.acc).quat
+    field = quaternion.rotate(q6, np.asarray(trial.mag, np.float64))
+    lag = max(1, int(round(lag_s * trial.fs)))
+    out = np.full(trial.n_samples, np.nan)
+    if trial.n_samples > lag:
+        out[lag:] = np.linalg.norm(field[lag:] - field[:-lag], axis=1)
+    return out
+
+
+def field_change_predictions(trial, n_states: int) -> np.ndarray:
+    """Prediction rows ``(N, S + 6)`` that carry ``field_change`` as the field disturbance's size [µT]
+    (η_m = (change, 0, 0): the back-off uses |η_m|), NaN where it is NaN; no class probabilities, no
+    accelerometer noise."""
+    change = field_change(trial)
+    eta = np.zeros((trial.n_samples, 3))
+    eta[:, 0] = change
+    eta[~np.isfinite(change)] = np.nan
+    return _disturbance_predictions(eta, n_states)
+
+
+def _disturbance_predictions(eta_mag: np.ndarray, n_states: int) -> np.ndarray:
+    """Rows of ``PredictionLayout.of(n_states)`` with η_m ``eta_mag (N, 3)`` [µT], η_a zero and the class
+    probabilities NaN (the learned VQF keeps its core's settings)."""
     layout = PredictionLayout.of(n_states)
-    pred = np.full((trial.n_samples, layout.size), np.nan)
+    pred = np.full((len(eta_mag), layout.size), np.nan)
     pred[:, layout.eta_acc] = 0.0
-    pred[targets.valid, layout.eta_mag] = targets.eta_mag[targets.valid]
+    pred[:, layout.eta_mag] = eta_mag
     return pred
 
 
-def _true_disturbance_grid(trials: dict, states, settings: HeadroomSettings) -> tuple[list, list]:
-    """Every trial with VQF's defaults and the back-off driven by the true disturbance, at each σ_m of
-    ``settings.disturbance_scales``: (keys, res) as ``held_out_tagp`` takes them."""
+def _disturbance_grid(trials: dict, states, settings: HeadroomSettings, predictions_of) -> tuple[list, list]:
+    """Every trial with VQF's defaults and the back-off driven by ``predictions_of(trial)`` (prediction rows),
+    at each σ_m of ``settings.disturbance_scales``: (keys, res) as ``held_out_tagp`` takes them."""
     keys = [{"mag_disturbance_scale": float(v)} for v in settings.disturbance_scales]
     res = [{} for _ in keys]
     for n, t in trials.items():
-        pred = true_disturbance_predictions(t, settings.labels, len(states))
+        pred = predictions_of(t)
         for i, k in enumerate(keys):
             e = vqf_variant_errors(VQFTogglingSettings(states=tuple(states), **k), t, pred)
             res[i][n] = TrialResult(n, (), _errors(e), 0.0, t.n_samples, params=k)
@@ -247,7 +293,8 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
     selection, ``DatasetIndex.select``); ``store``: a ``run.sweep.ResultStore`` that keeps the grid's
     results. Returns a dict: ``name``, ``trials``, ``groups`` (name -> present members), ``partition``,
     ``rows`` (row -> trial -> {"total", "heading", "inclination"} [deg]), ``folds`` (per fold its test
-    trials, the TAGP pair and its training mean, the true-label settings, the true-disturbance σ_m [µT]),
+    trials, the TAGP pair and its training mean, the true-label settings, the true-disturbance and
+    field-change σ_m [µT]),
     ``group_pairs``, ``trial_pairs``, ``label_coverage`` (fraction of samples with a true label), ``vqf_check``
     (largest |Δ| [deg] of the core at its defaults against the ``vqf`` package's online VQF) and ``grid``."""
     t_start = time.perf_counter()
@@ -291,13 +338,19 @@ def dataset_headroom(data_dir, settings: HeadroomSettings, trials=None, store=No
     true_rows, true_info = _true_label_rows(loaded, folds, preds, states, settings, [f["tagp"] for f in fold_info])
     rows.update(true_rows)
     t0 = time.perf_counter()
-    d_keys, d_res = _true_disturbance_grid(loaded, states, settings)
+    d_keys, d_res = _disturbance_grid(loaded, states, settings,
+                                      lambda t: true_disturbance_predictions(t, settings.labels, len(states)))
     rows["true_disturbance"], d_info = held_out_tagp(names, folds, d_keys, d_res)
     log.info(f"  true disturbance: {len(d_keys)} σ_m x {len(names)} trials in {time.perf_counter() - t0:.0f} s; "
              + ", ".join(f"fold {f['fold'] + 1} σ_m {f['tagp']['mag_disturbance_scale']:g} µT" for f in d_info))
-    for f, extra, d in zip(fold_info, true_info, d_info):
+    t0 = time.perf_counter()
+    c_keys, c_res = _disturbance_grid(loaded, states, settings, lambda t: field_change_predictions(t, len(states)))
+    rows["field_change"], c_info = held_out_tagp(names, folds, c_keys, c_res)
+    log.info(f"  field change: {len(c_keys)} σ_m x {len(names)} trials in {time.perf_counter() - t0:.0f} s")
+    for f, extra, d, c in zip(fold_info, true_info, d_info, c_info):
         f["true_labels"] = extra
         f["true_disturbance_scale"] = d["tagp"]["mag_disturbance_scale"]
+        f["field_change_scale"] = c["tagp"]["mag_disturbance_scale"]
     log.info(f"  {index.root.name} done in {time.perf_counter() - t_start:.0f} s")
     return {"name": index.root.name, "trials": names, "groups": groups, "partition": partition, "rows": rows,
             "folds": fold_info, "tagp_in_sample": pair_all,
@@ -417,7 +470,9 @@ def headroom_table(results: list, command: str, revision: str | None = None) -> 
                   + "; ".join(f"{g} {_pair(p)}" for g, p in r["group_pairs"].items()) + ". Finest partition: "
                   + (", ".join(r["partition"]) if r["partition"] else "none (the all row is the in-sample TAGP)")
                   + ". True disturbance, σ_m per fold: "
-                  + ", ".join(f"{f['true_disturbance_scale']:g} µT" for f in r["folds"]) + ".", ""]
+                  + ", ".join(f"{f['true_disturbance_scale']:g} µT" for f in r["folds"])
+                  + ". Field change, σ_m per fold: "
+                  + ", ".join(f"{f['field_change_scale']:g} µT" for f in r["folds"]) + ".", ""]
     return "\n".join(lines)
 
 

@@ -440,7 +440,11 @@ def headroom_table(results: list, command: str, revision: str | None = None) -> 
              "true field disturbance |η_m| (from the reference: what a perfect regressor of the magnetometer-noise "
              "model's training target would predict; bounded, as the learned VQF's, by the core's rejection "
              "factor), σ_m chosen on each fold's training trials; not a bound, as that target also holds each "
-             "trial's constant heading misalignment. *offline VQF*: the `vqf` package's non-causal estimate at "
+             "trial's constant heading misalignment. *field change (no learning)*: the same back-off driven by "
+             f"how much the measured field changed over the last {FIELD_CHANGE_LAG:g} s in the earth frame of VQF's "
+             "6D estimate (no reference, nothing learned: the gyroscope explains the field's turning, a "
+             "disturbance coming, going or moving with the sensor it does not), σ_m chosen on each fold's "
+             "training trials. *offline VQF*: the `vqf` package's non-causal estimate at "
              "its defaults. Pairs are chosen on the total RMSE; heading and inclination are at the chosen pair.",
              ""]
     for r in results:

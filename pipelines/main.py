@@ -28,7 +28,8 @@ cross-dataset protocol.
 7. With ``--full``, your sensor, measured: on each dataset alone (folds within it), the learned VQF
    re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
    training recordings, against VQF at its defaults and tuned on the same recordings
-   (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md.
+   (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md; and the
+   kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md.
 8. With ``--full``: what could set VQF's two time constants on a dataset left out (``togglecf.run.travel``:
    trial statistics of the sensor's own signals, a reference-free self-tuning, and their ceilings, each
    scored on the second half of every trial) -> reports/travel/ (as ``python pipelines/travel.py``).
@@ -70,7 +71,7 @@ from togglecf.parallel.backend import BackendError, LocalBackend, Task, make_bac
 from togglecf.run.config import load_config
 from togglecf.run.headroom import headroom_settings, run_headroom
 from togglecf.run.lodo import dataset_dirs, lodo_json, lodo_table, plan_lodo
-from togglecf.run.per_sensor import base_models, per_sensor, per_sensor_json, per_sensor_table
+from togglecf.run.per_sensor import HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
 from togglecf.run.pretrained import train_pretrained_models, write_pretrained
 from togglecf.run.study import load_study_config, plan_study, run_study
 from togglecf.run.sweep import ResultStore
@@ -269,15 +270,17 @@ def write_lodo(results: dict, dirs, command: str) -> None:
 
 def each_sensor(dirs, command: str, store: ResultStore) -> None:
     """Step 7 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
-    datasets' models of step 4 (``run.per_sensor``) -> reports/per_sensor."""
-    with step("per sensor"):
-        out = Path("build/per_sensor")
-        results = per_sensor(dirs, out, base_models(dirs, LODO_BUILD_DIR, out), store=store)
+    datasets' models of step 4 (``run.per_sensor``): the learning curve -> reports/per_sensor/per_sensor.md,
+    the kept-back check's split (``HALF``) -> per_sensor_half.md."""
     PER_SENSOR_DIR.mkdir(parents=True, exist_ok=True)
-    text = per_sensor_table(results, dirs, command)
-    atomic_write_text(PER_SENSOR_DIR / "per_sensor.md", text)
-    atomic_write_json(PER_SENSOR_DIR / "per_sensor.json", per_sensor_json(results))
-    print(text)
+    for name, settings in (("per_sensor", PerSensorConfig()), ("per_sensor_half", HALF)):
+        with step(name.replace("_", " ")):
+            out = Path("build") / name
+            results = per_sensor(dirs, out, base_models(dirs, LODO_BUILD_DIR, out), settings, store=store)
+        text = per_sensor_table(results, dirs, command)
+        atomic_write_text(PER_SENSOR_DIR / f"{name}.md", text)
+        atomic_write_json(PER_SENSOR_DIR / f"{name}.json", per_sensor_json(results))
+        print(text)
 
 
 def headroom(broad: Path, store: ResultStore, command: str) -> None:

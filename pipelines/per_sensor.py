@@ -3,6 +3,7 @@
     python pipelines/per_sensor.py                      # every dataset beside BROAD -> reports/per_sensor/
     python pipelines/per_sensor.py --data ../shared/data/tyrex_nexus5 --sizes 2,4,8,all --scratch-sizes all
     python pipelines/per_sensor.py --quick              # 2 folds, 2 and all recordings, no scratch: the plumbing
+    python pipelines/per_sensor.py --half               # the kept-back check's split -> per_sensor_half.md
 
 For each dataset alone (``togglecf.run.per_sensor``): folds by whole trial within it; on 2, 4, 8 and
 all of a fold's training recordings, VQF tuned (τ_acc × τ_mag TAGP), the learned VQF re-learned
@@ -13,7 +14,10 @@ dataset is the pretrained recipe trained on the *other* datasets: leave-one-data
 when there are none, trained here first into ``<work>/base/without_<name>`` (minutes).
 
 Writes ``<out>/per_sensor.md`` (its first line names this command and the code) and
-``per_sensor.json`` (every held-out trial's errors); the models go to ``--work`` (``build/per_sensor``). ``python pipelines/main.py --full`` runs it.
+``per_sensor.json`` (every held-out trial's errors); the models go to ``--work`` (``build/per_sensor``).
+``--half``: the kept-back check's own split (2 folds, each half re-learned and trained on, the other half
+scored; ``run.per_sensor.HALF``) -> ``per_sensor_half.md`` / ``.json``, models in ``<work>_half``.
+``python pipelines/main.py --full`` runs both.
 """
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
 from togglecf.data.broad import DataNotFoundError, resolve_data_dir
 from togglecf.run.lodo import dataset_dirs
-from togglecf.run.per_sensor import PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
+from togglecf.run.per_sensor import HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
 
 OUT_DIR = Path("reports/per_sensor")
 WORK_DIR = Path("build/per_sensor")
@@ -58,6 +62,8 @@ def main(argv=None) -> int:
                    help="sizes at which the learned VQF is also trained from scratch (e.g. all; '' none)")
     p.add_argument("--seed", type=int, default=0, help="fold assignment and training subsets (0: round-robin)")
     p.add_argument("--quick", action="store_true", help="2 folds, 2 and all recordings, no scratch training")
+    p.add_argument("--half", action="store_true", help="the kept-back check's split: 2 folds, all of each half "
+                   "(re-learned and from scratch) -> per_sensor_half.md")
     p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR", help="the tables (default: %(default)s)")
     p.add_argument("--work", type=Path, default=WORK_DIR, metavar="DIR",
                    help="the re-learned and trained models, the bases trained here (default: %(default)s)")
@@ -69,13 +75,18 @@ def main(argv=None) -> int:
     missing = [str(d) for d in dirs if not (d / "trials.json").is_file()]
     if missing:
         p.error(f"not a dataset in BROAD's layout (no trials.json): {', '.join(missing)}")
-    settings = QUICK if args.quick else PerSensorConfig(args.folds, args.sizes, args.scratch_sizes, args.seed)
+    if args.quick and args.half:
+        p.error("--quick and --half: one of them")
+    settings = QUICK if args.quick else HALF if args.half else PerSensorConfig(args.folds, args.sizes,
+                                                                               args.scratch_sizes, args.seed)
+    name = "per_sensor_half" if args.half else "per_sensor"
+    work = args.work.with_name(args.work.name + "_half") if args.half else args.work
     command = "python pipelines/per_sensor.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])
                                                   if (argv if argv is not None else sys.argv[1:]) else "")
-    results = per_sensor(dirs, args.work, base_models(dirs, args.base_from, args.work), settings)
+    results = per_sensor(dirs, work, base_models(dirs, args.base_from, work), settings)
     text = per_sensor_table(results, dirs, command)
-    atomic_write_text(args.out / "per_sensor.md", text)
-    atomic_write_json(args.out / "per_sensor.json", per_sensor_json(results))
+    atomic_write_text(args.out / f"{name}.md", text)
+    atomic_write_json(args.out / f"{name}.json", per_sensor_json(results))
     print(text)
     return 0
 

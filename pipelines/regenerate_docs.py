@@ -4,6 +4,7 @@
                                         [--sweep build/embedded/default/sweep] [--export build/embedded/default]
                                         [--models models/default]
                                         [--lodo reports/lodo] [--per-sensor reports/per_sensor]
+                                        [--per-sensor-half reports/per_sensor]
                                         [--headroom reports/headroom] [--out docs/results]
 
 No number in the documentation is typed by hand: the pages include these files with
@@ -37,6 +38,8 @@ placeholder saying how to produce it when there is no file yet):
 * ``--lodo DIR`` (default ``reports/lodo``, ``make run``'s leave-one-dataset-out step): ``lodo.md``.
 * ``--per-sensor DIR`` (default ``reports/per_sensor``, the per-sensor step of ``main.py --full`` or
   ``pipelines/per_sensor.py``): ``per_sensor.md``.
+* ``--per-sensor-half DIR`` (default ``reports/per_sensor``, the same step's kept-back split or
+  ``pipelines/per_sensor.py --half``): ``per_sensor_half.md``.
 * ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``main.py --full``'s
   headroom step): ``headroom.md``.
 
@@ -504,6 +507,9 @@ RUN_TABLES = (
     RunTable("per_sensor", "reports/per_sensor", "per_sensor.md",
              "the per-sensor output of `python pipelines/main.py --full` or `pipelines/per_sensor.py`",
              "Run `python pipelines/per_sensor.py` (or `python pipelines/main.py --full`)."),
+    RunTable("per_sensor_half", "reports/per_sensor", "per_sensor_half.md",
+             "the kept-back check's split of `python pipelines/main.py --full` or `pipelines/per_sensor.py --half`",
+             "Run `python pipelines/per_sensor.py --half` (or `python pipelines/main.py --full`)."),
     RunTable("headroom", "reports/headroom", "headroom.md", "the headroom over VQF (pipelines/headroom.py)",
              "Run `python pipelines/headroom.py` (or `python pipelines/main.py --full`)."),
     RunTable("travel", "reports/travel", "travel.md", "what could set VQF's time constants on a dataset left out "

@@ -50,8 +50,8 @@ from togglecf.run.sweep import evaluate_trials
 from togglecf.run.train import run_training
 from togglecf.toggling.pretrained import portable_from_model_dir
 
-__all__ = ["PerSensorConfig", "ROWS", "LEARNED_ROWS", "training_subsets", "vqf_grid", "base_models", "per_sensor",
-           "per_sensor_table", "per_sensor_json", "versus", "worst_group"]
+__all__ = ["PerSensorConfig", "HALF", "ROWS", "LEARNED_ROWS", "training_subsets", "vqf_grid", "base_models",
+           "per_sensor", "per_sensor_table", "per_sensor_json", "versus", "worst_group"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,10 @@ class PerSensorConfig:
             if getattr(defaults, k) not in grid[k]:
                 grid[k] = sorted(grid[k] + [getattr(defaults, k)])
         return grid
+
+
+#: the kept-back check's own split: re-learn (and train) on half of a dataset's recordings, score the other half
+HALF = PerSensorConfig(folds=2, sizes=(0,), scratch_sizes=(0,))
 
 
 def training_subsets(train, sizes, seed: int = 0) -> dict:

@@ -2,7 +2,7 @@
 trials writes the table, the oracles are ordered by construction, the held-out TAGP is chosen on the
 training trials only, the defaults row is the core at its defaults, the true-disturbance row is the back-off
 on the reference's field disturbance, the field-change row the back-off on a cue that sees a disturbance
-come and go and not the sensor's turning, and the goal check needs its margin, the tuned pair and every group."""
+come and go and not the sensor's turning (at VQF's defaults and at each fold's TAGP), and the goal check needs its margin, the tuned pair and every group."""
 import importlib
 import json
 import sys
@@ -16,8 +16,8 @@ from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.learn.labels import make_targets, state_names
 from togglecf.registry import FilterSpec
 from togglecf import simulate
-from togglecf.run.headroom import (FIELD_CHANGE_LAG, GOAL_MARGIN, GOAL_ROWS, LABELS, METRICS, ROWS, field_change,
-                                  field_change_predictions, finest_partition, goal_check, headroom_settings,
+from togglecf.run.headroom import (FIELD_CHANGE_LAG, GOAL_MARGIN, GOAL_ROWS, LABELS, METRICS, ROWS, back_off_at_tagp,
+                                  field_change, field_change_predictions, finest_partition, goal_check, headroom_settings,
                                   held_out_tagp, true_disturbance_predictions)
 from togglecf.run.study_rows import vqf_variant_errors
 from togglecf.run.scoring import TrialResult, score_trial
@@ -244,3 +244,51 @@ def test_field_change_row_is_the_back_off_on_the_field_change(quick_run, mini_in
     s = VQFTogglingSettings(states=tuple(states), mag_disturbance_scale=fold["field_change_scale"])
     expected = vqf_variant_errors(s, trial, field_change_predictions(trial, len(states)))["total"]
     assert r["rows"]["field_change"][name]["total"] == expected
+
+
+def test_field_change_at_tagp_row_is_the_back_off_at_the_folds_pair(quick_run, mini_index):
+    """Each test trial at its fold's held-out TAGP pair with the field-change back-off at the σ_m that is
+    best on the fold's training trials at that pair: exact (the same code path), the choice recomputed
+    here from the training trials alone."""
+    _, r = quick_run
+    settings = headroom_settings(quick=True, jobs=1)
+    states = tuple(state_names(settings.labels.label_set))
+    trials = {n: mini_index.load(n) for n in r["trials"]}
+    preds = {n: field_change_predictions(t, len(states)) for n, t in trials.items()}
+
+    def total(name, scale, pair):
+        s = VQFTogglingSettings(states=states, mag_disturbance_scale=scale, **pair)
+        return vqf_variant_errors(s, trials[name], preds[name])["total"]
+
+    for fold in r["folds"]:
+        pair = {k: float(fold["tagp"][k]) for k in ("tau_acc", "tau_mag")}
+        train = [n for n in r["trials"] if n not in fold["test"]]
+        best = min(settings.disturbance_scales, key=lambda v: np.mean([total(n, v, pair) for n in train]))
+        assert fold["field_change_tagp_scale"] == best
+        for name in fold["test"]:
+            assert r["rows"]["field_change_tagp"][name]["total"] == total(name, best, pair)
+
+
+def test_back_off_at_tagp_runs_each_fold_at_its_own_pair(mini_index):
+    """With folds whose pairs are not VQF's defaults (the quick run's folds all land there), each test trial
+    is scored at its own fold's pair and the σ_m best on that fold's training trials at that pair."""
+    settings = headroom_settings(quick=True, jobs=1)
+    states = tuple(state_names(settings.labels.label_set))
+    names = mini_index.select(None)
+    trials = {n: mini_index.load(n) for n in names}
+    preds = {n: field_change_predictions(t, len(states)) for n, t in trials.items()}
+    folds = [[n] for n in names]
+    pairs = [{"tau_acc": 1.0, "tau_mag": 30.0}, {"tau_acc": 3.0, "tau_mag": 9.0}, {"tau_acc": 1.0, "tau_mag": 30.0}]
+    rows, info = back_off_at_tagp(trials, folds, states, settings, preds, pairs)
+
+    def total(name, scale, pair):
+        s = VQFTogglingSettings(states=states, mag_disturbance_scale=scale, **pair)
+        return vqf_variant_errors(s, trials[name], preds[name])["total"]
+
+    for k, (test, pair) in enumerate(zip(folds, pairs)):
+        train = [n for n in names if n not in test]
+        best = min(settings.disturbance_scales, key=lambda v: np.mean([total(n, v, pair) for n in train]))
+        assert info[k]["tagp"]["mag_disturbance_scale"] == best
+        assert rows[test[0]]["total"] == total(test[0], best, pair)
+    # the pair matters on these trials (else the check above could not tell the pairs apart)
+    assert total(names[0], 5.0, pairs[0]) != total(names[0], 5.0, pairs[1])

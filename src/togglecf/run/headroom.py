@@ -125,8 +125,9 @@ class HeadroomSettings:
         fold_seed: ``learn.folds.trial_folds``'s seed (0: round-robin over the sorted names, the study's).
         search: the true-label rows' per-state search (default the study's ``[gains.vqf]``).
         labels: the motion labels' settings (default the study's training config's ``[labels]`` and seed).
-        disturbance_scales: σ_m [µT] values of the true-disturbance row (each fold takes the best on its
-            training trials).
+        disturbance_scales: σ_m [µT] values of the back-off rows (true disturbance, field change; each fold
+            takes the best on its training trials). Up to 50 µT: a phone's field is noisier and its best
+            back-off gentler (every phone fold chose the top of a grid that ended at 20 µT).
         jobs: worker processes of the grid and the gain searches.
     """
 
@@ -135,7 +136,7 @@ class HeadroomSettings:
     fold_seed: int = 0
     search: VQFGainSearch = field(default_factory=VQFGainSearch)
     labels: LabelSettings = field(default_factory=LabelSettings)
-    disturbance_scales: tuple = (2.0, 5.0, 10.0, 20.0)
+    disturbance_scales: tuple = (2.0, 5.0, 10.0, 20.0, 50.0)
     jobs: int = 1
 
 

@@ -278,7 +278,7 @@ def _disturbance_grid(trials: dict, states, settings: HeadroomSettings, predicti
 
 
 def back_off_at_tagp(trials: dict, folds, states, settings: HeadroomSettings, predictions: dict,
-                  tagp: list) -> tuple[dict, list]:
+                     tagp: list) -> tuple[dict, list]:
     """The back-off driven by ``predictions`` (trial -> prediction rows) on top of each fold's held-out TAGP
     pair (``tagp[k]``: ``{"tau_acc", "tau_mag"}`` [s]): σ_m chosen on the fold's training trials at that
     pair, scored on its test trials. Returns ``(rows, info)`` as ``held_out_tagp``; the grid of each

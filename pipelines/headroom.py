@@ -1,6 +1,7 @@
 """The headroom over VQF, per dataset and group: VQF at its defaults, its two time constants tuned
-(held out), oracles of those two, per-state time constants driven by the true motion labels, and
-VQF's offline estimate (``togglecf.run.headroom``).
+(held out), oracles of those two, per-state time constants driven by the true motion labels, the
+heading back-off driven by the true field disturbance and by the field's change (at VQF's defaults and
+at the tuned pair), and VQF's offline estimate (``togglecf.run.headroom``).
 
     python pipelines/headroom.py                       # BROAD and every dataset beside it
     python pipelines/headroom.py --data ../shared/data/broad --data ../shared/data/tyrex_nexus5

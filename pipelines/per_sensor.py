@@ -4,6 +4,7 @@
     python pipelines/per_sensor.py --data ../shared/data/tyrex_nexus5 --sizes 2,4,8,all --scratch-sizes all
     python pipelines/per_sensor.py --quick              # 2 folds, 2 and all recordings, no scratch: the plumbing
     python pipelines/per_sensor.py --half               # the kept-back check's split -> per_sensor_half.md
+    python pipelines/per_sensor.py --half --config my.toml   # another training config (e.g. its [gains.vqf] grids)
 
 For each dataset alone (``togglecf.run.per_sensor``): folds by whole trial within it; on 2, 4, 8 and
 all of a fold's training recordings, VQF tuned (τ_acc × τ_mag TAGP), the learned VQF re-learned
@@ -65,6 +66,8 @@ def main(argv=None) -> int:
     p.add_argument("--half", action="store_true", help="the kept-back check's split: 2 folds, all of each half "
                    "(re-learned and from scratch) -> per_sensor_half.md")
     p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR", help="the tables (default: %(default)s)")
+    p.add_argument("--config", type=Path, default=None, metavar="TOML",
+                   help="the training config of the re-learning and the scratch training (default: the package's)")
     p.add_argument("--work", type=Path, default=WORK_DIR, metavar="DIR",
                    help="the re-learned and trained models, the bases trained here (default: %(default)s)")
     args = p.parse_args(argv)
@@ -72,6 +75,8 @@ def main(argv=None) -> int:
         dirs = [Path(d) for d in args.data] if args.data else dataset_dirs(resolve_data_dir(None))
     except DataNotFoundError as exc:
         p.error(str(exc))
+    if args.config is not None and not args.config.is_file():
+        p.error(f"--config {args.config}: no such file")
     missing = [str(d) for d in dirs if not (d / "trials.json").is_file()]
     if missing:
         p.error(f"not a dataset in BROAD's layout (no trials.json): {', '.join(missing)}")
@@ -83,7 +88,8 @@ def main(argv=None) -> int:
     work = args.work.with_name(args.work.name + "_half") if args.half else args.work
     command = "python pipelines/per_sensor.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])
                                                   if (argv if argv is not None else sys.argv[1:]) else "")
-    results = per_sensor(dirs, work, base_models(dirs, args.base_from, work), settings)
+    config = None if args.config is None else str(args.config)
+    results = per_sensor(dirs, work, base_models(dirs, args.base_from, work), settings, config=config)
     text = per_sensor_table(results, dirs, command)
     atomic_write_text(args.out / f"{name}.md", text)
     atomic_write_json(args.out / f"{name}.json", per_sensor_json(results))

@@ -237,28 +237,47 @@ def test_c_arithmetic_matches_python_with_the_same_predictions(exported, model_d
     np.testing.assert_array_equal(dc["rest"], ref.diagnostics["rest"])
 
 
+def _c_and_python_with_settings(model_dir, t, out, **settings):
+    """The 9D learned VQF of ``model_dir`` with ``settings`` changed in its gains.json (a copy under ``out``):
+    Python in the loop, and the C export driven by Python's predictions. Returns (Python's filter, its
+    output, C's quaternions, the export's tcf_config.h)."""
+    d = out / "models"
+    shutil.copytree(model_dir, d)
+    doc = json.loads((d / "gains.json").read_text())
+    doc["vqf_9d"]["settings"].update(settings)
+    (d / "gains.json").write_text(json.dumps(doc))
+    f, py = _python(d, t, True)
+    rep = cv.export_c_vqf_toggling(d, out / "c", t.fs, use_mag=True)
+    P = np.stack([py.diagnostics[k] for k in _pred_names(rep)], axis=1)
+    qc = cv.run_vqft_harness(cv.build_vqft_harness(out / "c"), t.gyr, t.acc, t.mag, predictions=P)
+    return f, py, qc, (out / "c" / "tcf_config.h").read_text()
+
+
 def test_measured_backoff_law_matches_python(model_dir, mini_trial, tmp_path):
     """The other back-off law (``mag_backoff_measured``: the predicted disturbance capped by the one
     the magnetometer shows, TCF_VQFT_MAG_BACKOFF_MEASURED 1), which models trained before 2026-12 store:
     C vs Python with the same predictions within the arithmetic bound, and not the default law's output
     (σ_m 3 µT backs off on the mini cut under either law, by different amounts)."""
-    d = tmp_path / "measured"
-    shutil.copytree(model_dir, d)
-    doc = json.loads((d / "gains.json").read_text())
-    doc["vqf_9d"]["settings"]["mag_backoff_measured"] = True
-    (d / "gains.json").write_text(json.dumps(doc))
-    t = mini_trial
-    f, py = _python(d, t, True)
+    f, py, qc, _ = _c_and_python_with_settings(model_dir, mini_trial, tmp_path, mag_backoff_measured=True)
     assert f.settings.mag_backoff_measured is True
-    out = tmp_path / "c"
-    rep = cv.export_c_vqf_toggling(d, out, t.fs, use_mag=True)
-    exe = cv.build_vqft_harness(out)
-    P = np.stack([py.diagnostics[k] for k in _pred_names(rep)], axis=1)
-    qc = cv.run_vqft_harness(exe, t.gyr, t.acc, t.mag, predictions=P)
     ang = _angles_deg(qc, py.quat)
     assert ang.max() <= ARITH_TOL["mini"], f"max {ang.max():.5f}°"
-    _, bounded = _python(model_dir, t, True)
+    _, bounded = _python(model_dir, mini_trial, True)
     assert _angles_deg(bounded.quat, py.quat).max() > 10 * ARITH_TOL["mini"]
+
+
+def test_field_change_back_off_matches_python(model_dir, mini_trial, tmp_path):
+    """Step 3b (``field_change_scale`` σ_f > 0: the back-off on the field's change in the 6D earth frame,
+    TCF_VQFT_FIELD_CHANGE_SCALE) in C vs Python with the same predictions, within the arithmetic bound, and
+    not the output without it (σ_f 2 µT backs off on the mini cut's tapping and rotation)."""
+    f, py, qc, config = _c_and_python_with_settings(model_dir, mini_trial, tmp_path, field_change_scale=2.0,
+                                                    field_change_tau=0.5)
+    assert (f.settings.field_change_scale, f.settings.field_change_tau) == (2.0, 0.5)
+    assert "#define TCF_VQFT_FIELD_CHANGE_SCALE 2.0f" in config
+    ang = _angles_deg(qc, py.quat)
+    assert ang.max() <= ARITH_TOL["mini"], f"max {ang.max():.5f}°"
+    _, without = _python(model_dir, mini_trial, True)
+    assert _angles_deg(without.quat, py.quat).max() > 10 * ARITH_TOL["mini"]
 
 
 def test_fallback_fires_as_in_python(model_dir, mini_trial, mini_kind, tmp_path):

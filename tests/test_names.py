@@ -62,8 +62,9 @@ VQFT_STATE_PY_ONLY = {
     "mag_backoff": "the back-off factor 1 + e of the last sample (a record of the step); C applies it "
                    "and keeps no copy",
 }
-#: coefficients held in the C state struct (one run-time coefficient; the others are macros)
-VQFT_COEF_IN_STATE = {"modulation_gain": "derived from fs at tcf_vqft_init, so it cannot be a macro"}
+#: coefficients held in the C state struct (derived from the rate at init; the others are macros)
+VQFT_COEF_IN_STATE = {"modulation_gain": "derived from fs at tcf_vqft_init, so it cannot be a macro",
+                      "field_change_gain": "derived from fs at tcf_vqft_init, so it cannot be a macro"}
 #: coefficients that are compile-time macros of the generated tcf_config.h: name -> macro
 VQFT_COEF_MACROS_RENAMED = {
     "layout": ("TCF_N_CLASSES", "the prediction row's layout is fixed at export: TCF_N_CLASSES and "

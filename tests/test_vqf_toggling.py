@@ -1,6 +1,7 @@
 """The VQF core with learned time constants (filters.vqf_toggling): learning off is the core,
 the fallback and the bounds hold, update == update_batch, the in-loop models equal the
-prediction-driven filter, and `togglecf train` learns and stores its gains."""
+prediction-driven filter, `togglecf train` learns and stores its gains, and the field-change
+back-off (step 3b) is its definition, backs off a disturbance and not the turning, and is off at 0."""
 import json
 import shutil
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from togglecf import simulate
 from togglecf.core.quaternion import angle_between
 from togglecf.filters import VQFCoreFilter
 from togglecf.filters.prediction import PredictionLayout
@@ -303,3 +305,98 @@ def test_learning_off_is_the_core_with_a_followed_modulation(mini_trial, rng):
     assert np.max(angle_between(o.quat, core.quat)) < 1e-9
     with pytest.raises(ValueError, match="modulation_tau"):
         VQFTogglingSettings(states=STATES, modulation_tau=-1.0)
+
+
+def test_field_change_state_is_the_low_pass_of_the_6d_earth_frame_field(mini_trial):
+    """Step 3b's state after a trial equals its definition computed here in numpy: the field in the earth
+    frame of the core's 6D orientation (the 6D core's output: the heading correction never touches q_6D, so the
+    9D filter's q_6D is the 6D core's), low-passed with 1 − exp(−Ts/τ_f) from the first valid sample, e_f the
+    last sample's (|m_E − LP| / σ_f)². Tolerance: float64 rounding over 4000 samples (1e-9 µT)."""
+    t = mini_trial
+    scale, tau = 10.0, 1.0
+    s = VQFTogglingSettings(states=STATES, field_change_scale=scale, field_change_tau=tau)
+    f = VQFTogglingFilter(t.fs, s)
+    f.update_batch(t.gyr, t.acc, t.mag)
+    q6 = VQFCoreFilter(t.fs, use_mag=False).update_batch(t.gyr, t.acc).quat
+    me = Rotation.from_quat(q6[:, [1, 2, 3, 0]]).apply(t.mag)  # sensor -> earth, scipy's [x, y, z, w]
+    ts, k = 1.0 / t.fs, 1.0 - np.exp(-1.0 / (t.fs * tau))
+    ok = np.isfinite(t.mag).all(axis=1) & (np.linalg.norm(t.mag, axis=1) > 1e-9)
+    lp, age, e = None, 0.0, 0.0
+    for i in np.flatnonzero(ok):
+        if lp is None:
+            lp = me[i].copy()
+            continue
+        d = me[i] - lp
+        age += ts
+        if age >= tau - 0.5 * ts:
+            e = float(d @ d) / scale ** 2
+        lp = lp + k * d
+    np.testing.assert_allclose(f.record.field_lp, lp, rtol=0, atol=1e-9)
+    assert f.record.field_change_disturbance == pytest.approx(e, rel=1e-9, abs=1e-15)
+    assert f.record.field_lp_t == pytest.approx(ts * (ok.sum() - 1), rel=1e-12)
+
+
+def _field_change_run(fs, scale, disturbance=(20.0, 0.0, 0.0)):
+    """A turning sensor (simulate.gimbal_trajectory, 40 s) in the earth's field, a constant field
+    ``disturbance`` [µT, ENU] added from 20 s to 30 s; the learned VQF with step 3b at ``scale`` σ_f [µT],
+    no prediction. Returns the per-sample back-off 1 + e and the trial."""
+    n = int(40 * fs)
+    q = simulate.gimbal_trajectory(fs, 40.0)
+    t = simulate.imu_from_orientation(q, fs, mag_disturbance_earth=simulate.mag_disturbance_intervals(
+        n, fs, ((20.0, 30.0, disturbance),)))
+    f = VQFTogglingFilter(fs, VQFTogglingSettings(states=STATES, field_change_scale=scale))
+    backoff = np.empty(n)
+    for i in range(n):
+        f.update(t.gyr[i], t.acc[i], t.mag[i])
+        backoff[i] = f.record.mag_backoff
+    return backoff, t
+
+
+def test_field_change_backs_off_a_disturbance_coming_and_going_and_not_the_turning():
+    """Noise-free signals: while the sensor turns in the undisturbed field the gyroscope explains the field's
+    turning and the back-off stays at 1 (to the 6D estimate's own error); a 20 µT field coming and going
+    backs off the heading gain by the core's rejection factor (2) at once, never more, and not before it
+    came; a 10 s constant disturbance is accepted as the field after a few τ_f."""
+    fs = 100.0
+    backoff, t = _field_change_run(fs, scale=5.0)
+    time = np.arange(len(backoff)) / fs
+    undisturbed = (time > 2.0) & (time < 20.0)
+    assert backoff[undisturbed].max() < 1.01  # (e_f < 0.01: |m_E − LP| < 0.5 µT of the 6D estimate's error)
+    assert backoff.max() == pytest.approx(2.0) and backoff.max() <= 2.0  # capped at f_reject
+    onset, end = int(20.0 * fs), int(30.0 * fs)
+    assert backoff[onset + 1] == pytest.approx(2.0)  # the next sample backs off (step 3b runs after the step)
+    assert backoff[onset + int(8 * fs):end].max() < 1.01  # accepted after 8 s (8 τ_f)
+    assert backoff[end + 1] == pytest.approx(2.0)  # and the field's return is a change too
+    assert backoff[-int(2 * fs):].max() < 1.01
+
+
+def test_field_change_is_off_at_zero_and_in_6d_and_checked(mini_trial):
+    """σ_f = 0 (the default) is the filter without step 3b, bit for bit; in 6D it is off whatever σ_f
+    (no magnetometer); settings outside their range are refused with the field's name."""
+    t = mini_trial
+    base = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=STATES, mag_disturbance_scale=10.0))
+    off = VQFTogglingFilter(t.fs, VQFTogglingSettings(states=STATES, mag_disturbance_scale=10.0,
+                                                      field_change_scale=0.0, field_change_tau=3.0))
+    assert np.array_equal(base.update_batch(t.gyr, t.acc, t.mag).quat, off.update_batch(t.gyr, t.acc, t.mag).quat)
+    on = VQFTogglingSettings(states=STATES, field_change_scale=5.0)
+    assert not on.learning_off(use_mag=True) and on.learning_off(use_mag=False)
+    q6_on = VQFTogglingFilter(t.fs, on, use_mag=False).update_batch(t.gyr, t.acc).quat
+    assert np.array_equal(q6_on, VQFCoreFilter(t.fs, use_mag=False).update_batch(t.gyr, t.acc).quat)
+    on9 = VQFTogglingFilter(t.fs, on).update_batch(t.gyr, t.acc, t.mag).quat
+    assert np.max(angle_between(on9, base.update_batch(t.gyr, t.acc, t.mag).quat)) > 1e-6  # it does act in 9D
+    for bad in (dict(field_change_scale=-1.0), dict(field_change_scale=np.inf), dict(field_change_tau=0.0),
+                dict(field_change_tau=np.nan)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            VQFTogglingSettings(states=STATES, **bad)
+
+
+def test_search_offers_the_field_change_scale_in_9d_only_and_off_by_default():
+    """σ_f is a coordinate of the descent in 9D with its grid (a config's ``[gains.vqf] field_change_scale``),
+    none in 6D; by default its grid is 0 alone, so the descent never moves it (every existing model's
+    search is unchanged)."""
+    start = VQFGainSearch().start(STATES)
+    assert dict(VQFGainSearch().candidates(start, use_mag=True))["field_change_scale"] == [
+        (0.0, {"field_change_scale": 0.0})]
+    grid = VQFGainSearch.from_dict({"field_change_scale": [0.0, 10.0, 20.0]})
+    assert [v for v, _ in dict(grid.candidates(start, use_mag=True))["field_change_scale"]] == [0.0, 10.0, 20.0]
+    assert "field_change_scale" not in dict(grid.candidates(start, use_mag=False))

@@ -84,9 +84,10 @@ def state_bytes_formula(window_max: int, n_classes: int) -> int:
     ``TCF_VQF_STATE_BYTES`` (``cvqf.vqf_state_bytes``), the features ``4 · (43 + 12 L_max + S)``
     (ring 12 L_max, ``TCF_WINDOW_MAX`` rows for ``TCF_MAX_FS``; per-sample constants of the init
     rate 6, EMA references 10, candidate field 5, previous acc 3, last-sample features 10,
-    counters 3, η̂ 6; class probabilities S) and ``4 · (23 + S)`` (modulation 7, diagnostics 3, the
-    last prediction S + 6, the followed modulation and back-off 6, its gain 1)."""
-    return vqf_state_bytes() + 4 * (43 + 12 * int(window_max) + int(n_classes)) + 4 * (23 + int(n_classes))
+    counters 3, η̂ 6; class probabilities S) and ``4 · (29 + S)`` (modulation 7, diagnostics 3, the
+    last prediction S + 6, the followed modulation and back-off 6, its gain 1, the field change 5 and
+    its gain 1)."""
+    return vqf_state_bytes() + 4 * (43 + 12 * int(window_max) + int(n_classes)) + 4 * (29 + int(n_classes))
 
 
 def _filter_defines(filt) -> str:
@@ -121,6 +122,10 @@ def _filter_defines(filt) -> str:
 /* mag_backoff_measured: the back-off acts on at most the disturbance the magnetometer shows (instead of
    the rejection-factor bound) */
 #define TCF_VQFT_MAG_BACKOFF_MEASURED {1 if s.mag_backoff_measured else 0}
+/* sigma_f [uT] of step 3b (the back-off on the field's change in the 6D earth frame; 0: off, always 0 in
+   6D) and the time constant [s] of the low-pass it is compared with */
+#define TCF_VQFT_FIELD_CHANGE_SCALE {c_float(p.field_change_scale)}
+#define TCF_VQFT_FIELD_CHANGE_TAU {c_float(p.field_change_tau)}
 #define TCF_VQFT_CONFIDENCE_FLOOR {c_float(s.confidence_floor)}   /* c0 of step 1 */
 #define TCF_VQFT_NOISE_WEIGHT_ACC {c_float(s.noise_weight_acc)}   /* w_a of step 4 */
 #define TCF_VQFT_NOISE_WEIGHT_MAG {c_float(s.noise_weight_mag)}   /* w_m of step 4 */

@@ -15,6 +15,7 @@
 #include "tcf_vqf_toggling.h"
 #include "tcf_vqf_config.h"
 #include "tcf_prediction.h"  /* the prediction row as named fields, steps 1, 3, 4 */
+#include "tcf_math.h"        /* tcf_q_mul, tcf_vec_ok: step 3b */
 
 #if defined(__FAST_MATH__)
 #error "tcf_vqf_toggling.c must not be compiled with -ffast-math: the no-prediction (NaN) tests would be removed"
@@ -158,9 +159,10 @@ static float tcf_vqft_field_deviation_sq(const tcf_vqf_t *c, const float m[3]) {
 
 /* _heading_gain, every sample: k_mag / (1 + e), e the predicted disturbance, at most the core's
    rejection factor - 1 (the learned back-off slows the heading correction no more than the core's
-   own), with TCF_VQFT_MAG_BACKOFF_MEASURED at most the one the magnetometer shows instead */
+   own), with TCF_VQFT_MAG_BACKOFF_MEASURED at most the one the magnetometer shows instead; then the
+   larger of that and step 3b's e_f, itself at most the rejection factor - 1 */
 static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
-  float e = f->mag_disturbance_predicted;
+  float e = f->mag_disturbance_predicted, e_f = f->field_change_disturbance;
   if (e > 0.0f) {
 #if TCF_VQFT_MAG_BACKOFF_MEASURED
     float em = tcf_vqft_field_deviation_sq(&f->core, mag)
@@ -172,7 +174,34 @@ static void tcf_vqft_heading_gain(tcf_vqft_t *f, const float mag[3]) {
 #endif
     if (em < e) e = em;
   }
+  if (e_f > 0.0f) {
+    float cap = f->core.c.mag_rejection_factor - 1.0f;
+    if (cap < 0.0f) cap = 0.0f;
+    if (e_f > cap) e_f = cap;
+    if (e_f > e) e = e_f;
+  }
   f->mod.k_mag = tcf_back_off(f->k_mag_now, e);
+}
+
+/* _field_change (step 3b), after the core step: the field in the 6D earth frame against its low-pass;
+   e_f once the low-pass has seen field_change_tau of valid samples; an invalid sample changes nothing */
+static void tcf_vqft_field_change(tcf_vqft_t *f, const float mag[3]) {
+  float q6[4], me[3], d[3];
+  int i;
+  if (!tcf_vec_ok(mag)) return;
+  tcf_q_mul(f->core.q_acc, f->core.q_gyr, q6);
+  tcf_vqf_rotate(q6, mag, me);
+  if (f->field_lp_t < 0.0f) {  /* the first valid sample starts the low-pass */
+    for (i = 0; i < 3; ++i) f->field_lp[i] = me[i];
+    f->field_lp_t = 0.0f;
+    return;
+  }
+  for (i = 0; i < 3; ++i) d[i] = me[i] - f->field_lp[i];
+  f->field_lp_t += f->core.c.ts;
+  if (f->field_lp_t >= TCF_VQFT_FIELD_CHANGE_TAU - 0.5f * f->core.c.ts)  /* half a sample, as Python */
+    f->field_change_disturbance = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+                                  / (TCF_VQFT_FIELD_CHANGE_SCALE * TCF_VQFT_FIELD_CHANGE_SCALE);
+  for (i = 0; i < 3; ++i) f->field_lp[i] += f->field_change_gain * d[i];
 }
 #endif
 
@@ -188,7 +217,8 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   tcf_vqft_follow(f);
 #endif
 #if TCF_USE_MAG
-  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f) tcf_vqft_heading_gain(f, mag);
+  if (TCF_VQFT_FOLLOW || TCF_VQFT_MAG_DISTURBANCE_SCALE > 0.0f || TCF_VQFT_FIELD_CHANGE_SCALE > 0.0f)
+    tcf_vqft_heading_gain(f, mag);
 #endif
 #if TCF_VQFT_NOISE_ACC || TCF_VQFT_NOISE_MAG
   /* step 4, the learned VQF's rule: whenever eta is finite, whatever the probabilities; a sensor whose
@@ -198,6 +228,9 @@ static void tcf_vqft_step(tcf_vqft_t *f, const float gyr[3], const float acc[3],
   if (TCF_VQFT_NOISE_MAG) mag = m_d;
 #endif
   tcf_vqf_update_mod(&f->core, gyr, acc, mag, dt, &f->mod);  /* step 5 */
+#if TCF_USE_MAG
+  if (TCF_VQFT_FIELD_CHANGE_SCALE > 0.0f) tcf_vqft_field_change(f, mag);  /* step 3b, for the next sample */
+#endif
 }
 
 int tcf_vqft_init(tcf_vqft_t *f, float fs) {
@@ -222,6 +255,10 @@ int tcf_vqft_init(tcf_vqft_t *f, float fs) {
   f->k_mag_now = f->mod.k_mag;
   /* gain_from_tau(modulation_tau, Ts) of the Python filter; -expm1f: exact for Ts << tau */
   f->modulation_gain = TCF_VQFT_MODULATION_TAU > 0.0f ? -expm1f(-f->core.c.ts / TCF_VQFT_MODULATION_TAU) : 1.0f;
+  f->field_lp[0] = f->field_lp[1] = f->field_lp[2] = 0.0f;
+  f->field_lp_t = -1.0f;  /* step 3b: no valid field seen yet */
+  f->field_change_disturbance = 0.0f;
+  f->field_change_gain = -expm1f(-f->core.c.ts / TCF_VQFT_FIELD_CHANGE_TAU);
   return TCF_OK;
 }
 

@@ -12,6 +12,10 @@
  *   coefficients    tcf_vqf_mod_from (the core's formulas, float32)
  * (with modulation_tau > 0, TCF_VQFT_FOLLOW: ln tau_acc and ln tau_mag follow these values
  * with a first-order low-pass, gain TCF_VQFT_MODULATION_GAIN per sample)
+ * with sigma_f > 0 (TCF_VQFT_FIELD_CHANGE_SCALE, 9D), step 3b: the heading gain also backs off on
+ * how much the field changed in the 6D earth frame, e_f = min((|m_E - LP(m_E)| / sigma_f)^2,
+ * f_reject - 1), m_E = R(q_acc q_gyr) m, LP a first-order low-pass of TCF_VQFT_FIELD_CHANGE_TAU,
+ * updated after each core step (filters/vqf_toggling.py, _field_change);
  * then step 4 (noise removal a - w_a eta_a, m - w_m eta_m) and step 5, the VQF core
  * (tcf_vqf.{h,c}, tcf_vqf_update_mod) with those coefficients. No prediction (NaN: before the
  * first full window, or the window was out of the training range) -> the core's own settings.
@@ -70,12 +74,16 @@ typedef struct tcf_vqft {
   float mag_disturbance_predicted;  /* the predicted disturbance (|eta_m| / sigma_m)^2 (step 3) */
   float k_mag_now;          /* 1 - exp(-Ts / tau_mag_now): k_mag before the back-off */
   float modulation_gain;    /* 1 - exp(-Ts / modulation_tau) at the init rate (1: at once) */
+  float field_lp[3];        /* step 3b: the low-passed field in the 6D earth frame [uT] */
+  float field_lp_t;         /* step 3b: time [s] of valid samples the low-pass has seen (-1: none yet) */
+  float field_change_disturbance;  /* step 3b: e_f = (|m_E - LP| / sigma_f)^2 */
+  float field_change_gain;  /* 1 - exp(-Ts / field_change_tau) at the init rate */
 } tcf_vqft_t;
 
 /* sizeof(tcf_vqft_t): 4-byte members only, no padding (checked at compile time): the core,
    the features, 7 modulation coefficients, the last prediction (S + 6), 3 diagnostics, 6 of the
-   followed modulation and the back-off, its gain */
-#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (23 + TCF_N_CLASSES))
+   followed modulation and the back-off, its gain, 5 of the field change and its gain */
+#define TCF_VQFT_STATE_BYTES (TCF_VQF_STATE_BYTES + TCF_FEATURES_STATE_BYTES + 4 * (29 + TCF_N_CLASSES))
 
 /* Reset at the sampling rate fs [Hz]: every per-sample coefficient derived from fs and the
    settings (see "Rate at init"), the core's initial state, empty window, no prediction.

@@ -22,6 +22,12 @@ acc/mag noise in the sensor frame) set the coefficients it uses (a ``CoreModulat
    learned part can slow the heading correction but never stop it (per sample; on top of the
    core's own norm/dip rejection M1–M4). ``mag_backoff_measured`` instead caps e by the deviation
    the magnetometer shows against the core's reference field, (|m − m_ref|_min / σ_m)²
+   3b. field change (9D, σ_f > 0, nothing learned): the field in the earth frame of the core's 6D
+   orientation, m_E = R(q_6D) m, against its own first-order low-pass of time constant τ_f,
+   e_f = min((|m_E − LP(m_E)| / σ_f)², f_reject − 1); the back-off uses max(e, e_f). The gyroscope
+   explains the field's turning, so an undisturbed field keeps e_f at the sensor's floor; a
+   disturbance coming, going or moving with the sensor raises it. Updated after each sample's
+   core step (the next sample backs off on it), not before τ_f of valid samples
 4. noise removal   a_d = a − w_a η̂_a,  m_d = m − w_m η̂_m   (w learned in [0, 1])
 5. the core step on (ω, a_d, m_d) with those coefficients.
 
@@ -42,8 +48,8 @@ from typing import NamedTuple, get_type_hints
 import numpy as np
 from numba import njit
 
-from togglecf.core.quaternion import rotate_scalar
-from togglecf.filters.base import record_fields, record_of, record_view, state_record
+from togglecf.core.quaternion import multiply_scalar, rotate_scalar
+from togglecf.filters.base import load_quat, record_fields, record_of, record_view, state_record, vector_ok
 from togglecf.filters.prediction import (
     PredictionDrivenFilter,
     PredictionLayout,
@@ -119,6 +125,10 @@ class VQFTogglingSettings(VQFCoreSettings):
             against the core's reference field (for models whose gains.json stores it;
             it keeps no gain where the core's reference is itself disturbed, e.g. a magnet
             attached from the start).
+        field_change_scale: σ_f [µT] of step 3b: the heading gain also backs off on how much the
+            field changed in the earth frame of the core's 6D orientation (9D); 0 (default) = off.
+        field_change_tau: τ_f [s] of step 3b: the time constant of the low-pass the field is
+            compared with, and the valid samples' time before it backs off at all (default 1 s).
     """
 
     states: tuple = ("static", "dynamic")
@@ -133,6 +143,8 @@ class VQFTogglingSettings(VQFCoreSettings):
     noise_weight_mag: float = 0.0
     modulation_tau: float = 0.0
     mag_backoff_measured: bool = False
+    field_change_scale: float = 0.0
+    field_change_tau: float = 1.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -162,17 +174,22 @@ class VQFTogglingSettings(VQFCoreSettings):
             raise ValueError(f"modulation_tau must be a finite time constant >= 0 s, got {self.modulation_tau}")
         if self.tau_mag == 0.0:
             raise ValueError("tau_mag must be > 0 s for the learned filter (its blend is in ln τ)")
+        if not (self.field_change_scale >= 0.0 and math.isfinite(self.field_change_scale)):
+            raise ValueError(f"field_change_scale must be >= 0 µT (0: off), got {self.field_change_scale}")
+        if not (self.field_change_tau > 0.0 and math.isfinite(self.field_change_tau)):
+            raise ValueError(f"field_change_tau must be a finite time constant > 0 s, got {self.field_change_tau}")
 
     def learning_off(self, use_mag: bool) -> bool:
         """True when nothing learned acts in 9D (``use_mag``) or 6D: every per-state value equals the
         core's (τ_acc, τ_mag, σ_motion, th_ω, th_a), no noise vector is subtracted (w_a = 0, and in 9D
-        w_m = 0) and, in 9D, the heading back-off is off (σ_m = 0). Then the confidence floor and
+        w_m = 0) and, in 9D, the heading back-offs are off (σ_m = 0, σ_f = 0). Then the confidence floor and
         ``modulation_tau`` change nothing (every blend is the core's value) and the filter is the core
         with ``core_settings`` (within rounding of exp(ln τ)): ``LearnedVQF`` and the C export run the
         core alone."""
         same = all(v == getattr(self, core) for core, per_state in _PER_STATE.items()
                    for v in getattr(self, per_state))
-        mag_terms = use_mag and (self.noise_weight_mag != 0.0 or self.mag_disturbance_scale != 0.0)
+        mag_terms = use_mag and (self.noise_weight_mag != 0.0 or self.mag_disturbance_scale != 0.0
+                                 or self.field_change_scale != 0.0)
         return same and self.noise_weight_acc == 0.0 and not mag_terms
 
     @property
@@ -189,12 +206,14 @@ VQFTogglingCoefficients = NamedTuple("VQFTogglingCoefficients", [
     ("ln_tau_acc_core", float), ("ln_tau_mag_core", float), ("ln_sigma_motion_core", float),
     ("ln_rest_th_gyr_core", float), ("ln_rest_th_acc_core", float),
     ("confidence_floor", float), ("mag_disturbance_scale", float), ("noise_weight_acc", float),
-    ("noise_weight_mag", float), ("modulation_gain", float), ("mag_backoff_measured", float)])
+    ("noise_weight_mag", float), ("modulation_gain", float), ("mag_backoff_measured", float),
+    ("field_change_scale", float), ("field_change_tau", float), ("field_change_gain", float)])
 
 #: the core's state, then the modulation in use (a ``CoreModulation`` record), τ_acc, τ_mag and λ in
 #: use (diagnostics), the last prediction row (to see changes), the targets and followed ln τ_acc,
 #: ln τ_mag (``_follow``), the heading back-off (``_heading_gain``) and k_mag of τ_mag in use before
-#: the back-off (computed when τ_mag moves, not every sample)
+#: the back-off (computed when τ_mag moves, not every sample); step 3b's low-passed earth-frame field
+#: [µT], the time [s] of valid samples it has seen (−1: none yet) and its disturbance e_f
 STATE_FIELDS = CORE_STATE_FIELDS + (
     ("mod", record_fields(CoreModulation, "mod_")),
     ("tau_acc_now", "tau_acc_now"), ("tau_mag_now", "tau_mag_now"), ("trust_now", "trust_now"),
@@ -202,7 +221,9 @@ STATE_FIELDS = CORE_STATE_FIELDS + (
     ("ln_tau_acc_target", "ln_tau_acc_target"), ("ln_tau_mag_target", "ln_tau_mag_target"),
     ("ln_tau_acc_now", "ln_tau_acc_now"), ("ln_tau_mag_now", "ln_tau_mag_now"),
     ("mag_disturbance_predicted", "mag_disturbance_predicted"), ("mag_backoff", "mag_backoff"),
-    ("k_mag_now", "k_mag_now"))
+    ("k_mag_now", "k_mag_now"),
+    ("field_lp", ("field_lp_x", "field_lp_y", "field_lp_z")), ("field_lp_t", "field_lp_t"),
+    ("field_change_disturbance", "field_change_disturbance"))
 VQFT_STATE, _STATE_NAMES = state_record(STATE_FIELDS)
 _vqft_state = record_view(VQFT_STATE)
 _DIAG_NAMES = VQFCoreFilter.diagnostic_names + ("tau_acc", "tau_mag", "trust")
@@ -311,15 +332,41 @@ def _heading_gain(st, p, mag):
     1 + e, e = (|η̂_m| / σ_m)² at most f_reject − 1 (the core's rejection factor: the learned
     back-off slows the heading correction no more than the core's own, M4), or with
     ``mag_backoff_measured`` at most the disturbance the magnetometer itself shows,
-    (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``)."""
+    (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``); then the larger of that and step 3b's e_f
+    (``_field_change``), itself at most f_reject − 1."""
     e = st.mag_disturbance_predicted
     if e > 0.0:
         if p.mag_backoff_measured > 0.5:
             e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
         else:
             e = min(e, max(p.mag_rejection_factor - 1.0, 0.0))
+    e_f = st.field_change_disturbance
+    if e_f > 0.0:
+        e = max(e, min(e_f, max(p.mag_rejection_factor - 1.0, 0.0)))
     st.mag_backoff = 1.0 + e
     st.mod.k_mag = back_off(st.k_mag_now, e)
+
+
+@njit(cache=True, inline="always")
+def _field_change(st, p, mag):
+    """Step 3b after the core step: the field ``mag`` [µT] in the earth frame of the core's 6D
+    orientation, m_E = R(q_acc ⊗ q_gyr) m, against its low-pass (gain ``field_change_gain``); e_f =
+    (|m_E − LP| / σ_f)², 0 until the low-pass has seen ``field_change_tau`` of valid samples. An invalid
+    sample changes nothing (the policy of ``filters.base``)."""
+    if not vector_ok(mag):
+        return
+    me = rotate_scalar(multiply_scalar(load_quat(st.q_acc), load_quat(st.q_gyr)), (mag[0], mag[1], mag[2]))
+    lp = st.field_lp
+    if st.field_lp_t < 0.0:  # the first valid sample starts the low-pass
+        lp[0], lp[1], lp[2] = me[0], me[1], me[2]
+        st.field_lp_t = 0.0
+        return
+    d0, d1, d2 = me[0] - lp[0], me[1] - lp[1], me[2] - lp[2]
+    st.field_lp_t += p.ts
+    if st.field_lp_t >= p.field_change_tau - 0.5 * p.ts:  # half a sample: float32 (C) sums agree
+        st.field_change_disturbance = (d0 * d0 + d1 * d1 + d2 * d2) / (p.field_change_scale * p.field_change_scale)
+    k = p.field_change_gain
+    lp[0], lp[1], lp[2] = lp[0] + k * d0, lp[1] + k * d1, lp[2] + k * d2
 
 
 @njit(cache=True)
@@ -337,11 +384,13 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
             st.k_mag_now = st.mod.k_mag  # modulate's gain_from_tau(tau_mag), before any back-off
     if p.modulation_gain < 1.0:
         _follow(st, p)
-    if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0:
+    if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0 or p.field_change_scale > 0.0:
         _heading_gain(st, p, mag)
     # step 4, the learned VQF's rule (filters.prediction): whenever η̂ is finite
     _, a_d, m_d = remove_noise(layout, pred, acc, mag, p.noise_weight_acc, p.noise_weight_mag, True)
     core_update(st, p, st.mod, gyr, a_d, m_d, dt, diag)  # step 5
+    if p.field_change_scale > 0.0:  # step 3b for the next sample
+        _field_change(st, p, m_d)
     diag[N_CORE_DIAG], diag[N_CORE_DIAG + 1], diag[N_CORE_DIAG + 2] = st.tau_acc_now, st.tau_mag_now, st.trust_now
 
 
@@ -376,7 +425,10 @@ class VQFTogglingFilter(PredictionDrivenFilter):
                 "mag_disturbance_scale": s.mag_disturbance_scale if self.use_mag else 0.0,
                 "noise_weight_acc": s.noise_weight_acc, "noise_weight_mag": s.noise_weight_mag,
                 "modulation_gain": gain_from_tau(s.modulation_tau, self.Ts),
-                "mag_backoff_measured": float(s.mag_backoff_measured)}
+                "mag_backoff_measured": float(s.mag_backoff_measured),
+                "field_change_scale": s.field_change_scale if self.use_mag else 0.0,
+                "field_change_tau": s.field_change_tau,
+                "field_change_gain": gain_from_tau(s.field_change_tau, self.Ts)}
 
     @property
     def record(self):
@@ -396,6 +448,8 @@ class VQFTogglingFilter(PredictionDrivenFilter):
         st.ln_tau_mag_target = st.ln_tau_mag_now = math.log(self.settings.tau_mag)
         st.mag_disturbance_predicted, st.mag_backoff = 0.0, 1.0
         st.k_mag_now = st.mod.k_mag  # the core's own, before any back-off
+        st.field_lp[:] = 0.0
+        st.field_lp_t, st.field_change_disturbance = -1.0, 0.0  # step 3b: no valid field seen yet
 
     def set_quat(self, q):
         """Set the output orientation (sensor -> ENU) and mark the filter initialised; the core's

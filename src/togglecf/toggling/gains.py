@@ -239,6 +239,10 @@ class VQFGainSearch:
     on BROAD and the iPhone 4S, made the Nexus 5's swinging trials worse than the core). Whatever
     σ_m, the back-off is bounded by the core's rejection factor (``VQFTogglingSettings``).
 
+    σ_f, the scale of the back-off on the field's change in the 6D earth frame (step 3b of
+    ``filters.vqf_toggling``: no model, a physical cue), is off (0) by default; a grid of several
+    values searches it (9D), for data of one sensor.
+
     A step is kept by the one-standard-error rule (``step_rule = "one_se"``, module docstring): the
     descent starts at the core, and a value leaves it only for a gain larger than the scatter of
     that gain over the training trials."""
@@ -250,6 +254,7 @@ class VQFGainSearch:
     rest_th_acc: tuple = (0.5,)
     confidence_floor: tuple = (0.0, 0.5, 0.7)
     mag_disturbance_scale: tuple = (0.0, 10.0, 30.0)
+    field_change_scale: tuple = (0.0,)
     noise_weight_acc: tuple = (0.0,)
     noise_weight_mag: tuple = (0.0,)
     sweeps: int = 2
@@ -284,7 +289,7 @@ class VQFGainSearch:
                     vals.append((v, {name: tuple(g)}))
                 yield f"{name}[{settings.states[s]}]", vals
         for name in ("confidence_floor", "noise_weight_acc") + (
-                ("noise_weight_mag", "mag_disturbance_scale") if use_mag else ()):
+                ("noise_weight_mag", "mag_disturbance_scale", "field_change_scale") if use_mag else ()):
             yield name, [(v, {name: v}) for v in getattr(self, name)]
 
 
@@ -619,7 +624,9 @@ def describe_gains(settings) -> str:
                 f"{settings.bias_sigma_motion_states} °/s, rest th_ω {settings.rest_th_gyr_states} °/s, th_a "
                 f"{settings.rest_th_acc_states} m/s², c₀ {settings.confidence_floor}, σ_m "
                 f"{settings.mag_disturbance_scale} µT, noise weights {settings.noise_weight_acc}/"
-                f"{settings.noise_weight_mag}, modulation τ {settings.modulation_tau} s")
+                f"{settings.noise_weight_mag}, modulation τ {settings.modulation_tau} s"
+                + (f", field change σ_f {settings.field_change_scale} µT (τ_f {settings.field_change_tau} s)"
+                   if settings.field_change_scale > 0.0 else ""))
     return (f"τ_acc {settings.tau_acc} s, τ_mag {settings.tau_mag} s, output τ {settings.output_tau} s, "
             f"bias τ {settings.bias_tau} s, σ_m {settings.mag_disturbance_scale} µT, noise weights "
             f"{settings.noise_weight_acc}/{settings.noise_weight_mag}, c₀ {settings.confidence_floor}, "

@@ -29,7 +29,8 @@ cross-dataset protocol.
    re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
    training recordings, against VQF at its defaults and tuned on the same recordings
    (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md; and the
-   kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md.
+   kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md, and the same
+   with the field-change back-off's scale searched too -> per_sensor_half_field_change.md.
 8. With ``--full``: what could set VQF's two time constants on a dataset left out (``togglecf.run.travel``:
    trial statistics of the sensor's own signals, a reference-free self-tuning, and their ceilings, each
    scored on the second half of every trial) -> reports/travel/ (as ``python pipelines/travel.py``).
@@ -71,7 +72,8 @@ from togglecf.parallel.backend import BackendError, LocalBackend, Task, make_bac
 from togglecf.run.config import load_config
 from togglecf.run.headroom import headroom_settings, run_headroom
 from togglecf.run.lodo import dataset_dirs, lodo_json, lodo_table, plan_lodo
-from togglecf.run.per_sensor import HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
+from togglecf.run.per_sensor import (HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table,
+                                     with_field_change)
 from togglecf.run.pretrained import train_pretrained_models, write_pretrained
 from togglecf.run.study import load_study_config, plan_study, run_study
 from togglecf.run.sweep import ResultStore
@@ -271,12 +273,15 @@ def write_lodo(results: dict, dirs, command: str) -> None:
 def each_sensor(dirs, command: str, store: ResultStore) -> None:
     """Step 7 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
     datasets' models of step 4 (``run.per_sensor``): the learning curve -> reports/per_sensor/per_sensor.md,
-    the kept-back check's split (``HALF``) -> per_sensor_half.md."""
+    the kept-back check's split (``HALF``) -> per_sensor_half.md, and that split with the field-change
+    back-off's scale searched too (``with_field_change``) -> per_sensor_half_field_change.md."""
     PER_SENSOR_DIR.mkdir(parents=True, exist_ok=True)
-    for name, settings in (("per_sensor", PerSensorConfig()), ("per_sensor_half", HALF)):
+    for name, settings, config in (("per_sensor", PerSensorConfig(), None), ("per_sensor_half", HALF, None),
+                                   ("per_sensor_half_field_change", HALF, with_field_change())):
         with step(name.replace("_", " ")):
             out = Path("build") / name
-            results = per_sensor(dirs, out, base_models(dirs, LODO_BUILD_DIR, out), settings, store=store)
+            results = per_sensor(dirs, out, base_models(dirs, LODO_BUILD_DIR, out), settings, config=config,
+                                 store=store)
         text = per_sensor_table(results, dirs, command)
         atomic_write_text(PER_SENSOR_DIR / f"{name}.md", text)
         atomic_write_json(PER_SENSOR_DIR / f"{name}.json", per_sensor_json(results))

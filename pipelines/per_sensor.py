@@ -5,6 +5,7 @@
     python pipelines/per_sensor.py --quick              # 2 folds, 2 and all recordings, no scratch: the plumbing
     python pipelines/per_sensor.py --half               # the kept-back check's split -> per_sensor_half.md
     python pipelines/per_sensor.py --half --config my.toml   # another training config (e.g. its [gains.vqf] grids)
+    python pipelines/per_sensor.py --half --field-change     # also search the field-change back-off's scale
 
 For each dataset alone (``togglecf.run.per_sensor``): folds by whole trial within it; on 2, 4, 8 and
 all of a fold's training recordings, VQF tuned (τ_acc × τ_mag TAGP), the learned VQF re-learned
@@ -18,7 +19,10 @@ Writes ``<out>/per_sensor.md`` (its first line names this command and the code) 
 ``per_sensor.json`` (every held-out trial's errors); the models go to ``--work`` (``build/per_sensor``).
 ``--half``: the kept-back check's own split (2 folds, each half re-learned and trained on, the other half
 scored; ``run.per_sensor.HALF``) -> ``per_sensor_half.md`` / ``.json``, models in ``<work>_half``.
-``python pipelines/main.py --full`` runs both.
+``--field-change``: the re-learning and the scratch training also search σ_f, the scale of the learned VQF's
+back-off on the field's change (``run.per_sensor.with_field_change``) -> ``<name>_field_change.md`` / ``.json``,
+models in ``<work>_field_change``. ``python pipelines/main.py --full`` runs the learning curve, the half split and
+the half split with ``--field-change``.
 """
 from __future__ import annotations
 
@@ -30,7 +34,8 @@ from togglecf.core.io import atomic_write_json, atomic_write_text
 from togglecf.core.log import setup_logging
 from togglecf.data.broad import DataNotFoundError, resolve_data_dir
 from togglecf.run.lodo import dataset_dirs
-from togglecf.run.per_sensor import HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table
+from togglecf.run.per_sensor import (HALF, PerSensorConfig, base_models, per_sensor, per_sensor_json, per_sensor_table,
+                                     with_field_change)
 
 OUT_DIR = Path("reports/per_sensor")
 WORK_DIR = Path("build/per_sensor")
@@ -68,6 +73,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR", help="the tables (default: %(default)s)")
     p.add_argument("--config", type=Path, default=None, metavar="TOML",
                    help="the training config of the re-learning and the scratch training (default: the package's)")
+    p.add_argument("--field-change", action="store_true", help="the re-learning and the scratch training also "
+                   "search the field-change back-off's scale -> <name>_field_change.md")
     p.add_argument("--work", type=Path, default=WORK_DIR, metavar="DIR",
                    help="the re-learned and trained models, the bases trained here (default: %(default)s)")
     args = p.parse_args(argv)
@@ -84,11 +91,14 @@ def main(argv=None) -> int:
         p.error("--quick and --half: one of them")
     settings = QUICK if args.quick else HALF if args.half else PerSensorConfig(args.folds, args.sizes,
                                                                                args.scratch_sizes, args.seed)
-    name = "per_sensor_half" if args.half else "per_sensor"
-    work = args.work.with_name(args.work.name + "_half") if args.half else args.work
+    suffix = ("_half" if args.half else "") + ("_field_change" if args.field_change else "")
+    name = "per_sensor" + suffix
+    work = args.work.with_name(args.work.name + suffix)
     command = "python pipelines/per_sensor.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])
                                                   if (argv if argv is not None else sys.argv[1:]) else "")
     config = None if args.config is None else str(args.config)
+    if args.field_change:
+        config = with_field_change(config)
     results = per_sensor(dirs, work, base_models(dirs, args.base_from, work), settings, config=config)
     text = per_sensor_table(results, dirs, command)
     atomic_write_text(args.out / f"{name}.md", text)

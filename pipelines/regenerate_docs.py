@@ -40,6 +40,8 @@ placeholder saying how to produce it when there is no file yet):
   ``pipelines/per_sensor.py``): ``per_sensor.md``.
 * ``--per-sensor-half DIR`` (default ``reports/per_sensor``, the same step's kept-back split or
   ``pipelines/per_sensor.py --half``): ``per_sensor_half.md``.
+* ``--per-sensor-half-field-change DIR`` (default ``reports/per_sensor``, that split with the field-change
+  back-off searched, or ``pipelines/per_sensor.py --half --field-change``): ``per_sensor_half_field_change.md``.
 * ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``main.py --full``'s
   headroom step): ``headroom.md``.
 
@@ -510,6 +512,10 @@ RUN_TABLES = (
     RunTable("per_sensor_half", "reports/per_sensor", "per_sensor_half.md",
              "the kept-back check's split of `python pipelines/main.py --full` or `pipelines/per_sensor.py --half`",
              "Run `python pipelines/per_sensor.py --half` (or `python pipelines/main.py --full`)."),
+    RunTable("per_sensor_half_field_change", "reports/per_sensor", "per_sensor_half_field_change.md",
+             "the kept-back check's split with the field-change back-off searched, of `python pipelines/main.py "
+             "--full` or `pipelines/per_sensor.py --half --field-change`",
+             "Run `python pipelines/per_sensor.py --half --field-change` (or `python pipelines/main.py --full`)."),
     RunTable("headroom", "reports/headroom", "headroom.md", "the headroom over VQF (pipelines/headroom.py)",
              "Run `python pipelines/headroom.py` (or `python pipelines/main.py --full`)."),
     RunTable("travel", "reports/travel", "travel.md", "what could set VQF's time constants on a dataset left out "

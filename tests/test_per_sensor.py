@@ -10,10 +10,11 @@ import pytest
 from togglecf.learn.folds import trial_folds
 from togglecf.registry import FilterSpec
 from togglecf.run.config import load_config
-from togglecf.run.per_sensor import (HALF, ROWS, PerSensorConfig, per_sensor, per_sensor_json, per_sensor_table,
-                                     training_subsets)
+from togglecf.run.per_sensor import (FIELD_CHANGE_GRID, HALF, ROWS, PerSensorConfig, per_sensor, per_sensor_json,
+                                     per_sensor_table, training_subsets)
 from togglecf.run.scoring import score_trial
 from togglecf.run.train import run_training
+from togglecf.toggling.gains import VQFGainSearch
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 #: a small τ_acc × τ_mag grid [s] with VQF's defaults (3, 9) on it
@@ -158,3 +159,11 @@ def test_half_is_the_kept_back_split_in_its_own_files(learning_off, mini_index, 
     with pytest.raises(SystemExit):
         script.main(["--half", "--config", str(tmp_path / "nope.toml")])
     assert f"--config {tmp_path / 'nope.toml'}: no such file" in capsys.readouterr().err
+    # --field-change: the config's [gains.vqf] searches σ_f (FIELD_CHANGE_GRID), its own files and models
+    assert script.main(["--half", "--field-change", "--data", str(mini_index.root), "--out", str(tmp_path / "out3"),
+                        "--work", str(tmp_path / "w")]) == 0
+    assert seen["work"] == tmp_path / "w_half_field_change"
+    assert seen["config"]["gains"]["vqf"]["field_change_scale"] == list(FIELD_CHANGE_GRID)
+    assert VQFGainSearch.from_dict(seen["config"]["gains"]["vqf"]).field_change_scale == FIELD_CHANGE_GRID
+    assert sorted(q.name for q in (tmp_path / "out3").iterdir()) == ["per_sensor_half_field_change.json",
+                                                                     "per_sensor_half_field_change.md"]

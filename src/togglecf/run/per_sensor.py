@@ -17,6 +17,10 @@ nested; 0 stands for all of them), on those ``n`` recordings only:
 * ``scratch``: ``togglecf train`` (the default recipe, gain mode ``vqf_9d``) on the ``n`` recordings
   (sizes of ``scratch_sizes`` only: it trains the models too);
 
+``with_field_change`` gives the training config whose re-learning and scratch training also search σ_f,
+the scale of the learned VQF's back-off on the field's change (step 3b of ``filters.vqf_toggling``;
+``FIELD_CHANGE_GRID``), for data of one sensor;
+
 and every held-out trial of the fold is scored with each, beside VQF at its defaults (``vqf_core``,
 the grid's point at VQF's default time constants). ``per_sensor_table`` reports, per dataset and
 size, the mean total RMSE [°] of each row, each learned row against VQF's defaults and against
@@ -50,8 +54,9 @@ from togglecf.run.sweep import evaluate_trials
 from togglecf.run.train import run_training
 from togglecf.toggling.pretrained import portable_from_model_dir
 
-__all__ = ["PerSensorConfig", "HALF", "ROWS", "LEARNED_ROWS", "training_subsets", "vqf_grid", "base_models",
-           "per_sensor", "per_sensor_table", "per_sensor_json", "versus", "worst_group"]
+__all__ = ["PerSensorConfig", "HALF", "ROWS", "LEARNED_ROWS", "FIELD_CHANGE_GRID", "training_subsets", "vqf_grid",
+           "base_models", "with_field_change", "per_sensor", "per_sensor_table", "per_sensor_json", "versus",
+           "worst_group"]
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +92,18 @@ class PerSensorConfig:
 
 #: the kept-back check's own split: re-learn (and train) on half of a dataset's recordings, score the other half
 HALF = PerSensorConfig(folds=2, sizes=(0,), scratch_sizes=(0,))
+#: µT: the σ_f grid of ``with_field_change`` (0: off; up to 50 µT, the headroom's back-off grid: a phone's field
+#: wants a gentler back-off than BROAD's)
+FIELD_CHANGE_GRID = (0.0, 10.0, 20.0, 50.0)
+
+
+def with_field_change(config=None, grid=FIELD_CHANGE_GRID) -> dict:
+    """The training config ``config`` (a TOML path, a parsed config or None: the package's) with
+    ``[gains.vqf] field_change_scale`` set to ``grid`` [µT]: the re-learning and the scratch training
+    then search the back-off on the field's change (``VQFGainSearch``)."""
+    cfg = load_config(config)
+    cfg["gains"]["vqf"] = {**cfg["gains"].get("vqf", {}), "field_change_scale": [float(v) for v in grid]}
+    return load_config(cfg)
 
 
 def training_subsets(train, sizes, seed: int = 0) -> dict:

@@ -191,7 +191,7 @@ def add_train_parser(subparsers):
     sp = subparsers.add_parser("train", help="learn the motion-state classifier and noise regressors "
                                "(CV by trial, then a final fit) and save them under models/NAME")
     sp.add_argument("--config", default=str(config_path("default.toml")), metavar="TOML",
-                    help="pipeline settings (default: pipelines/configs/default.toml)")
+                    help="pipeline settings (default: the package's togglecf/configs/default.toml)")
     sp.add_argument("--data", metavar="DIR", action="append", default=None, help=DATA_HELP)
     sp.add_argument("--trials", metavar="LIST", help=f"{SELECTION_HELP} (default: [run] trials of the config)")
     sp.add_argument("--out", metavar="DIR", help="model directory (default: models/<run.name>)")

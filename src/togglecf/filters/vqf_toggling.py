@@ -182,8 +182,8 @@ class VQFTogglingSettings(VQFCoreSettings):
     def learning_off(self, use_mag: bool) -> bool:
         """True when nothing learned acts in 9D (``use_mag``) or 6D: every per-state value equals the
         core's (τ_acc, τ_mag, σ_motion, th_ω, th_a), no noise vector is subtracted (w_a = 0, and in 9D
-        w_m = 0) and, in 9D, the heading back-offs are off (σ_m = 0, σ_f = 0). Then the confidence floor and
-        ``modulation_tau`` change nothing (every blend is the core's value) and the filter is the core
+        w_m = 0) and, in 9D, the heading back-offs are off (σ_m = 0, σ_f = 0). Then the confidence floor
+        and ``modulation_tau`` change nothing (every blend is the core's value) and the filter is the core
         with ``core_settings`` (within rounding of exp(ln τ)): ``LearnedVQF`` and the C export run the
         core alone."""
         same = all(v == getattr(self, core) for core, per_state in _PER_STATE.items()

@@ -29,8 +29,9 @@ cross-dataset protocol.
    re-learned from step 4's models that never saw it and trained from scratch, on 2, 4, 8 and all
    training recordings, against VQF at its defaults and tuned on the same recordings
    (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md; and the
-   kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md, and the same
-   with the field-change back-off's scale searched too -> per_sensor_half_field_change.md.
+   kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md, and both
+   with the field-change back-off's scale searched too -> per_sensor_field_change.md,
+   per_sensor_half_field_change.md.
 8. With ``--full``: what could set VQF's two time constants on a dataset left out (``togglecf.run.travel``:
    trial statistics of the sensor's own signals, a reference-free self-tuning, and their ceilings, each
    scored on the second half of every trial) -> reports/travel/ (as ``python pipelines/travel.py``).
@@ -273,10 +274,11 @@ def write_lodo(results: dict, dirs, command: str) -> None:
 def each_sensor(dirs, command: str, store: ResultStore) -> None:
     """Step 7 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
     datasets' models of step 4 (``run.per_sensor``): the learning curve -> reports/per_sensor/per_sensor.md,
-    the kept-back check's split (``HALF``) -> per_sensor_half.md, and that split with the field-change
-    back-off's scale searched too (``with_field_change``) -> per_sensor_half_field_change.md."""
+    the kept-back check's split (``HALF``) -> per_sensor_half.md, and both with the field-change back-off's
+    scale searched too (``with_field_change``) -> per_sensor_field_change.md, per_sensor_half_field_change.md."""
     PER_SENSOR_DIR.mkdir(parents=True, exist_ok=True)
     for name, settings, config in (("per_sensor", PerSensorConfig(), None), ("per_sensor_half", HALF, None),
+                                   ("per_sensor_field_change", PerSensorConfig(), with_field_change()),
                                    ("per_sensor_half_field_change", HALF, with_field_change())):
         with step(name.replace("_", " ")):
             out = Path("build") / name

@@ -40,6 +40,8 @@ placeholder saying how to produce it when there is no file yet):
   ``pipelines/per_sensor.py``): ``per_sensor.md``.
 * ``--per-sensor-half DIR`` (default ``reports/per_sensor``, the same step's kept-back split or
   ``pipelines/per_sensor.py --half``): ``per_sensor_half.md``.
+* ``--per-sensor-field-change DIR`` (default ``reports/per_sensor``, the learning curve with the field-change
+  back-off searched, or ``pipelines/per_sensor.py --field-change``): ``per_sensor_field_change.md``.
 * ``--per-sensor-half-field-change DIR`` (default ``reports/per_sensor``, that split with the field-change
   back-off searched, or ``pipelines/per_sensor.py --half --field-change``): ``per_sensor_half_field_change.md``.
 * ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``main.py --full``'s
@@ -512,6 +514,10 @@ RUN_TABLES = (
     RunTable("per_sensor_half", "reports/per_sensor", "per_sensor_half.md",
              "the kept-back check's split of `python pipelines/main.py --full` or `pipelines/per_sensor.py --half`",
              "Run `python pipelines/per_sensor.py --half` (or `python pipelines/main.py --full`)."),
+    RunTable("per_sensor_field_change", "reports/per_sensor", "per_sensor_field_change.md",
+             "the per-sensor learning curve with the field-change back-off searched, of `python pipelines/main.py "
+             "--full` or `pipelines/per_sensor.py --field-change`",
+             "Run `python pipelines/per_sensor.py --field-change` (or `python pipelines/main.py --full`)."),
     RunTable("per_sensor_half_field_change", "reports/per_sensor", "per_sensor_half_field_change.md",
              "the kept-back check's split with the field-change back-off searched, of `python pipelines/main.py "
              "--full` or `pipelines/per_sensor.py --half --field-change`",

@@ -80,6 +80,8 @@ FULL_RUN_FILES = {
     "reports/per_sensor/per_sensor.json": NOT_A_FILE,
     "reports/per_sensor/per_sensor_half.md": _table("## broad (2 trials, 2 folds)"),
     "reports/per_sensor/per_sensor_half.json": NOT_A_FILE,
+    "reports/per_sensor/per_sensor_field_change.md": _table("## broad (2 trials, 2 folds)"),
+    "reports/per_sensor/per_sensor_field_change.json": NOT_A_FILE,
     "reports/per_sensor/per_sensor_half_field_change.md": _table("## broad (2 trials, 2 folds)"),
     "reports/per_sensor/per_sensor_half_field_change.json": NOT_A_FILE,
     "reports/headroom/headroom.md": _table("## broad (2 trials, 2 folds)"),
@@ -101,6 +103,7 @@ OTHER_RUN_FILES = {
 COPIED = {"lodo.md": "reports/lodo/lodo.md", "transfer_rate.md": "reports/transfer/rate.md",
           "transfer_phone.md": "reports/transfer/phone.md", "per_sensor.md": "reports/per_sensor/per_sensor.md",
           "per_sensor_half.md": "reports/per_sensor/per_sensor_half.md",
+          "per_sensor_field_change.md": "reports/per_sensor/per_sensor_field_change.md",
           "per_sensor_half_field_change.md": "reports/per_sensor/per_sensor_half_field_change.md",
           "headroom.md": "reports/headroom/headroom.md", "travel.md": "reports/travel/travel.md"}
 

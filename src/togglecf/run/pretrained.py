@@ -299,8 +299,26 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
         timing["guard_s"] = time.perf_counter() - t0
     core = asdict(search.start(pm.models.class_names))
     kept = {m: core if m in guard and not guard[m]["passed"] else relearned[m] for m in modes}
+    metadata = _retune_metadata(index, names, source_path, pm, search, report, guard, kept)
+    path = save_portable(out_dir / RETUNED_FILE, pm.models, {**pm.gains, **kept}, metadata)
+    unguarded = None
+    if kept != {m: relearned[m] for m in modes}:  # the guard sent a mode back: its re-learned settings, for the record
+        unguarded = save_portable(out_dir / UNGUARDED_FILE, pm.models, {**pm.gains, **relearned},
+                                  {**metadata, "recipe": metadata["recipe"] + "; this file: the re-learned settings "
+                                   "the guard did not keep", "settings": relearned})
+        say(f"the re-learned settings the guard did not keep: {unguarded} (runs as --models FILE too)")
+    timing["total_s"] = time.perf_counter() - t_start
+    say(f"wrote {path} in {timing['total_s']:.1f} s (predictions {timing['predictions_s']:.1f} s, "
+        f"gains {timing['gains_s']:.1f} s" + (f", guard {timing['guard_s']:.1f} s)" if guard else ")"))
+    return {"path": path, "unguarded_path": unguarded, "modes": report, "guard": guard, "timing_s": timing,
+            "trials": names}
+
+
+def _retune_metadata(index, names, source_path, pm, search, report: dict, guard: dict, kept: dict) -> dict:
+    """The metadata of a re-tuned model file: its recipe, the model it was re-tuned from, the trials and
+    their files, the search's report, the guard's decision and the settings ``kept``."""
     data_files = {n: {"file": Path(index.available[n]).name, "sha256": file_sha256(index.available[n])} for n in names}
-    metadata = {
+    return {
         "recipe": "togglecf train --from-pretrained: the pretrained models kept, the learned VQF's settings "
                   "re-learned on the trials below by the gain search of togglecf train ([gains.vqf])"
                   + (", kept where the guard passed, else the VQF core's" if guard else " (no guard)"),
@@ -316,18 +334,6 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
         "data_files": {**pm.metadata.get("data_files", {}), **{f"retuned:{n}": v for n, v in data_files.items()}},
         "settings": kept,
     }
-    path = save_portable(out_dir / RETUNED_FILE, pm.models, {**pm.gains, **kept}, metadata)
-    unguarded = None
-    if kept != {m: relearned[m] for m in modes}:  # the guard sent a mode back: its re-learned settings, for the record
-        unguarded = save_portable(out_dir / UNGUARDED_FILE, pm.models, {**pm.gains, **relearned},
-                                  {**metadata, "recipe": metadata["recipe"] + "; this file: the re-learned settings "
-                                   "the guard did not keep", "settings": relearned})
-        say(f"the re-learned settings the guard did not keep: {unguarded} (runs as --models FILE too)")
-    timing["total_s"] = time.perf_counter() - t_start
-    say(f"wrote {path} in {timing['total_s']:.1f} s (predictions {timing['predictions_s']:.1f} s, "
-        f"gains {timing['gains_s']:.1f} s" + (f", guard {timing['guard_s']:.1f} s)" if guard else ")"))
-    return {"path": path, "unguarded_path": unguarded, "modes": report, "guard": guard, "timing_s": timing,
-            "trials": names}
 
 
 def relearn_settings(trials, predictions, pm, modes, search, jobs: int = 1, log=None) -> tuple[dict, dict]:

@@ -30,8 +30,8 @@ cross-dataset protocol.
    training recordings, against VQF at its defaults and tuned on the same recordings
    (``togglecf.run.per_sensor``, also ``pipelines/per_sensor.py``) -> reports/per_sensor/per_sensor.md; and the
    kept-back check's split, each half re-learned on and the other scored -> per_sensor_half.md, and both
-   with the field-change back-off's scale searched too -> per_sensor_field_change.md,
-   per_sensor_half_field_change.md.
+   with the field-change back-off's scale searched in the scratch training too (the re-learning searches it by
+   default) -> per_sensor_field_change.md, per_sensor_half_field_change.md.
 8. With ``--full``: what could set VQF's two time constants on a dataset left out (``togglecf.run.travel``:
    trial statistics of the sensor's own signals, a reference-free self-tuning, and their ceilings, each
    scored on the second half of every trial) -> reports/travel/ (as ``python pipelines/travel.py``).
@@ -275,7 +275,8 @@ def each_sensor(dirs, command: str, store: ResultStore) -> None:
     """Step 7 (``--full``): the learned VQF re-learned on each dataset's own recordings, from the left-out
     datasets' models of step 4 (``run.per_sensor``): the learning curve -> reports/per_sensor/per_sensor.md,
     the kept-back check's split (``HALF``) -> per_sensor_half.md, and both with the field-change back-off's
-    scale searched too (``with_field_change``) -> per_sensor_field_change.md, per_sensor_half_field_change.md."""
+    scale searched in the scratch training too (``with_field_change``; the re-learning searches it by default)
+    -> per_sensor_field_change.md, per_sensor_half_field_change.md."""
     PER_SENSOR_DIR.mkdir(parents=True, exist_ok=True)
     for name, settings, config in (("per_sensor", PerSensorConfig(), None), ("per_sensor_half", HALF, None),
                                    ("per_sensor_field_change", PerSensorConfig(), with_field_change()),

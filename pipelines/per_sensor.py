@@ -5,7 +5,7 @@
     python pipelines/per_sensor.py --quick              # 2 folds, 2 and all recordings, no scratch: the plumbing
     python pipelines/per_sensor.py --half               # the kept-back check's split -> per_sensor_half.md
     python pipelines/per_sensor.py --half --config my.toml   # another training config (e.g. its [gains.vqf] grids)
-    python pipelines/per_sensor.py --half --field-change     # also search the field-change back-off's scale
+    python pipelines/per_sensor.py --half --field-change     # the scratch training searches σ_f too
 
 For each dataset alone (``togglecf.run.per_sensor``): folds by whole trial within it; on 2, 4, 8 and
 all of a fold's training recordings, VQF tuned (τ_acc × τ_mag TAGP), the learned VQF re-learned
@@ -19,10 +19,11 @@ Writes ``<out>/per_sensor.md`` (its first line names this command and the code) 
 ``per_sensor.json`` (every held-out trial's errors); the models go to ``--work`` (``build/per_sensor``).
 ``--half``: the kept-back check's own split (2 folds, each half re-learned and trained on, the other half
 scored; ``run.per_sensor.HALF``) -> ``per_sensor_half.md`` / ``.json``, models in ``<work>_half``.
-``--field-change``: the re-learning and the scratch training also search σ_f, the scale of the learned VQF's
-back-off on the field's change (``run.per_sensor.with_field_change``) -> ``<name>_field_change.md`` / ``.json``,
-models in ``<work>_field_change``. ``python pipelines/main.py --full`` runs the learning curve, the half split and
-the half split with ``--field-change``.
+The re-learning searches σ_f, the scale of the learned VQF's back-off on the field's change, as ``togglecf train
+--from-pretrained`` does (``[gains.relearn]``); ``--field-change``: the scratch training searches it too
+(``run.per_sensor.with_field_change``) -> ``<name>_field_change.md`` / ``.json``,
+models in ``<work>_field_change``. ``python pipelines/main.py --full`` runs the learning curve and the half split,
+each with and without ``--field-change``.
 """
 from __future__ import annotations
 
@@ -73,8 +74,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=OUT_DIR, metavar="DIR", help="the tables (default: %(default)s)")
     p.add_argument("--config", type=Path, default=None, metavar="TOML",
                    help="the training config of the re-learning and the scratch training (default: the package's)")
-    p.add_argument("--field-change", action="store_true", help="the re-learning and the scratch training also "
-                   "search the field-change back-off's scale -> <name>_field_change.md")
+    p.add_argument("--field-change", action="store_true", help="the scratch training searches the field-change "
+                   "back-off's scale too, as the re-learning does -> <name>_field_change.md")
     p.add_argument("--work", type=Path, default=WORK_DIR, metavar="DIR",
                    help="the re-learned and trained models, the bases trained here (default: %(default)s)")
     args = p.parse_args(argv)

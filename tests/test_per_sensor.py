@@ -55,6 +55,7 @@ def learning_off(mini_index, tmp_path_factory):
         cfg[section].update(values)
     cfg["gains"]["modes"] = ["vqf_9d"]
     cfg["gains"]["vqf"] = {**cfg["gains"]["vqf"], **VQF_OFF}
+    cfg["gains"]["relearn"] = {"field_change_scale": [0.0]}  # the re-learning's σ_f too
     base = tmp / "base"
     run_training(cfg, data_dir=mini_index.root, out=base, verbose=False)
     settings = PerSensorConfig(folds=3, sizes=(2,), scratch_sizes=(2,), grid=GRID)

@@ -396,3 +396,26 @@ def test_retuned_model_runs_in_evaluate(retuned, capsys):
     captured = capsys.readouterr()
     assert "mean over 1 trials" in captured.out
     assert "used to train" in captured.err  # re-tuned on that trial: its score is flagged as in-sample
+
+
+def test_retune_searches_the_relearn_table(mini_index, monkeypatch, tmp_path):
+    """``train --from-pretrained`` re-learns with ``relearn_search``: ``[gains.relearn]``'s values in place of
+    ``[gains.vqf]``'s, the rest as ``[gains.vqf]`` (the re-learning is replaced by a stub that records its search)."""
+    import togglecf.run.pretrained as rp
+    from togglecf.run.config import load_config
+    if not PRETRAINED_FILE.is_file():
+        pytest.skip("this checkout ships no pretrained model")
+
+    class Seen(Exception):
+        pass
+
+    def stub(tr, pr, pm_, modes, search, jobs=1, log=None):
+        raise Seen(search)
+    monkeypatch.setattr(rp, "relearn_settings", stub)
+    gains = {"vqf": {"tau_acc": [2.0, 4.0], "field_change_scale": [0.0, 5.0]},
+             "relearn": {"field_change_scale": [0.0, 7.0]}}
+    cfg = load_config({"run": {"nthread": 1}, "gains": gains})
+    with pytest.raises(Seen) as seen:
+        rp.retune_pretrained(cfg, data_dir=mini_index.root, out=tmp_path, verbose=False)
+    search = seen.value.args[0]
+    assert search.field_change_scale == (0.0, 7.0) and search.tau_acc == (2.0, 4.0)

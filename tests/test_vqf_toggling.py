@@ -4,6 +4,7 @@ prediction-driven filter, `togglecf train` learns and stores its gains, and the 
 back-off (step 3b) is its definition, backs off a disturbance and not the turning, and is off at 0."""
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from togglecf.filters import VQFCoreFilter
 from togglecf.filters.prediction import PredictionLayout
 from togglecf.filters.vqf_toggling import TAU_ACC_RANGE, VQFTogglingFilter, VQFTogglingSettings
 from togglecf.registry import VQF_TOGGLING, FilterSpec
-from togglecf.run.config import load_config
+from togglecf.run.config import RELEARN_DEFAULTS, load_config, relearn_search
 from togglecf.run.train import run_training
 from togglecf.toggling import load_gains
 from togglecf.toggling.gains import VQFGainSearch
@@ -400,3 +401,23 @@ def test_search_offers_the_field_change_scale_in_9d_only_and_off_by_default():
     grid = VQFGainSearch.from_dict({"field_change_scale": [0.0, 10.0, 20.0]})
     assert [v for v, _ in dict(grid.candidates(start, use_mag=True))["field_change_scale"]] == [0.0, 10.0, 20.0]
     assert "field_change_scale" not in dict(grid.candidates(start, use_mag=False))
+
+
+def test_relearning_searches_the_field_change_scale_and_training_does_not():
+    """``[gains.relearn]`` (``relearn_search``, the search of ``train --from-pretrained``): the package's config and a
+    config without the table search σ_f on ``RELEARN_DEFAULTS``' grid, every other coordinate as ``[gains.vqf]``;
+    the training search (``[gains.vqf]``) keeps it off; the table's own values win, and its unknown keys are
+    refused with the table's name."""
+    cfg = load_config()
+    train, relearn = VQFGainSearch.from_dict(cfg["gains"]["vqf"]), relearn_search(cfg)
+    assert train.field_change_scale == (0.0,)
+    assert relearn.field_change_scale == RELEARN_DEFAULTS["field_change_scale"] == (0.0, 10.0, 20.0, 50.0)
+    assert replace(relearn, field_change_scale=(0.0,)) == train
+    bare = load_config({"gains": {"vqf": {"tau_acc": [2.0, 4.0]}}})
+    assert relearn_search(bare).field_change_scale == RELEARN_DEFAULTS["field_change_scale"]
+    assert relearn_search(bare).tau_acc == (2.0, 4.0)
+    off = load_config({"gains": {"vqf": {"field_change_scale": [0.0, 5.0]}, "relearn": {"field_change_scale": [0.0]}}})
+    assert relearn_search(off).field_change_scale == (0.0,)
+    assert VQFGainSearch.from_dict(off["gains"]["vqf"]).field_change_scale == (0.0, 5.0)
+    with pytest.raises(ValueError, match=r"unknown \[gains.relearn\] setting\(s\) \['sigma_f'\]"):
+        load_config({"gains": {"relearn": {"sigma_f": [1.0]}}})

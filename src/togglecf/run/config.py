@@ -2,23 +2,39 @@
 
 Training config (``togglecf train``, TOML; default ``togglecf/configs/default.toml``): sections
 ``[run]`` (``core.config.RUN_DEFAULTS``), ``[labels]``, ``[features]``, ``[classifier]``,
-``[regressor]``, ``[gains]``; unknown sections and keys are refused with their names.
+``[regressor]``, ``[gains]``; unknown sections and keys are refused with their names. ``[gains.vqf]`` is the
+learned VQF's search (``VQFGainSearch``); ``[gains.relearn]`` the values ``togglecf train --from-pretrained``
+searches in place of ``[gains.vqf]``'s (``relearn_search``).
 """
 from __future__ import annotations
 
 from togglecf.core.config import config_path, load_run_section, read_toml
+from togglecf.core.io import check_keys
 from togglecf.features.windows import FeatureSettings
 from togglecf.learn.labels import LabelSettings
 from togglecf.learn.models import MotionClassifier, NoiseRegressor
 from togglecf.toggling.gains import MODES, GainSearch, VQFGainSearch
 
-__all__ = ["DEFAULT_CONFIG", "load_config", "SECTIONS", "GAIN_KEYS"]
+__all__ = ["DEFAULT_CONFIG", "load_config", "SECTIONS", "GAIN_KEYS", "RELEARN_DEFAULTS", "relearn_search"]
 
 DEFAULT_CONFIG = config_path("default.toml")
 SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
 #: keys of ``[gains]`` that are not the toggling CF's search grids: whether and for which modes (``toggling.gains.MODES``)
-#: gains are learned, and ``vqf``, the sub-table of the VQF core's search (``VQFGainSearch``)
-GAIN_KEYS = ("learn", "modes", "vqf")
+#: gains are learned, ``vqf``, the sub-table of the VQF core's search (``VQFGainSearch``), and ``relearn``, what the
+#: re-learning on one sensor searches in its place (``relearn_search``)
+GAIN_KEYS = ("learn", "modes", "vqf", "relearn")
+#: ``[gains.relearn]``'s values where a config has none: σ_f [µT], the scale of the learned VQF's back-off on the
+#: field's change (step 3b of ``filters.vqf_toggling``; 0: off), searched when re-learning on one sensor's recordings
+#: (a magnetic environment and magnetometer of its own), not when training on several (``[gains.vqf]``: off)
+RELEARN_DEFAULTS = {"field_change_scale": (0.0, 10.0, 20.0, 50.0)}
+
+
+def relearn_search(cfg: dict) -> VQFGainSearch:
+    """The search of ``togglecf train --from-pretrained`` for a loaded config ``cfg`` (``load_config``): ``[gains.vqf]``
+    with each key of ``[gains.relearn]`` (where it has none: ``RELEARN_DEFAULTS``) in its place."""
+    gains = cfg["gains"]
+    relearn = check_keys(VQFGainSearch, dict(gains.get("relearn", {})), "[gains.relearn]")
+    return VQFGainSearch.from_dict({**gains.get("vqf", {}), **RELEARN_DEFAULTS, **relearn})
 
 
 def load_config(source=None) -> dict:
@@ -34,6 +50,7 @@ def load_config(source=None) -> dict:
     FeatureSettings.from_dict(cfg["features"])
     GainSearch.from_dict({k: v for k, v in cfg["gains"].items() if k not in GAIN_KEYS})
     VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
+    relearn_search(cfg)  # [gains.relearn]'s keys are the VQF search's
     bad_modes = sorted(set(cfg["gains"].get("modes", ())) - set(MODES))
     if bad_modes:
         raise ValueError(f"{what} [gains] modes: unknown {bad_modes}; known: {list(MODES)}")

@@ -17,9 +17,10 @@ nested; 0 stands for all of them), on those ``n`` recordings only:
 * ``scratch``: ``togglecf train`` (the default recipe, gain mode ``vqf_9d``) on the ``n`` recordings
   (sizes of ``scratch_sizes`` only: it trains the models too);
 
-``with_field_change`` gives the training config whose re-learning and scratch training also search σ_f,
-the scale of the learned VQF's back-off on the field's change (step 3b of ``filters.vqf_toggling``;
-``FIELD_CHANGE_GRID``), for data of one sensor;
+the re-learning searches σ_f, the scale of the learned VQF's back-off on the field's change (step 3b of
+``filters.vqf_toggling``), as ``togglecf train --from-pretrained`` does by default (``[gains.relearn]``,
+``run.config.relearn_search``); ``with_field_change`` gives the training config whose scratch training searches
+it too (``FIELD_CHANGE_GRID``), for data of one sensor;
 
 and every held-out trial of the fold is scored with each, beside VQF at its defaults (``vqf_core``,
 the grid's point at VQF's default time constants). ``per_sensor_table`` reports, per dataset and
@@ -46,7 +47,7 @@ from togglecf.metrics.broad import tagp
 from togglecf.parallel.backend import LocalBackend, Task, run_tasks
 from togglecf.registry import LEARNED_VQF, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
-from togglecf.run.config import load_config
+from togglecf.run.config import RELEARN_DEFAULTS, load_config
 from togglecf.run.pretrained import GUARD_FOLDS, retune_pretrained, train_pretrained_models
 from togglecf.run.scoring import grid_points, score_trial
 from togglecf.run.study import load_study_config
@@ -92,17 +93,19 @@ class PerSensorConfig:
 
 #: the kept-back check's own split: re-learn (and train) on half of a dataset's recordings, score the other half
 HALF = PerSensorConfig(folds=2, sizes=(0,), scratch_sizes=(0,))
-#: µT: the σ_f grid of ``with_field_change`` (0: off; up to 50 µT, the headroom's back-off grid: a phone's field
-#: wants a gentler back-off than BROAD's)
-FIELD_CHANGE_GRID = (0.0, 10.0, 20.0, 50.0)
+#: µT: the σ_f grid of ``with_field_change``, the re-learning's (``RELEARN_DEFAULTS``; 0: off; up to 50 µT, the
+#: headroom's back-off grid: a phone's field wants a gentler back-off than BROAD's)
+FIELD_CHANGE_GRID = RELEARN_DEFAULTS["field_change_scale"]
 
 
 def with_field_change(config=None, grid=FIELD_CHANGE_GRID) -> dict:
     """The training config ``config`` (a TOML path, a parsed config or None: the package's) with
-    ``[gains.vqf] field_change_scale`` set to ``grid`` [µT]: the re-learning and the scratch training
-    then search the back-off on the field's change (``VQFGainSearch``)."""
+    ``field_change_scale`` set to ``grid`` [µT] in ``[gains.vqf]`` and ``[gains.relearn]``: the scratch training
+    and the re-learning then search the back-off on the field's change (``VQFGainSearch``)."""
     cfg = load_config(config)
-    cfg["gains"]["vqf"] = {**cfg["gains"].get("vqf", {}), "field_change_scale": [float(v) for v in grid]}
+    grid = [float(v) for v in grid]
+    for table in ("vqf", "relearn"):
+        cfg["gains"][table] = {**cfg["gains"].get(table, {}), "field_change_scale": grid}
     return load_config(cfg)
 
 
@@ -281,11 +284,11 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
              "Each dataset alone: folds by whole trial within it; each row learned or tuned on *n* of the fold's "
              "training recordings only (*all*: every one), every held-out trial scored. Mean total RMSE [°] (BROAD's "
              "metric). `vqf_defaults`: VQF at its defaults; `vqf_tuned`: VQF with τ_acc × τ_mag at their TAGP on the "
-             "same *n* recordings; `relearned`: `togglecf train --from-pretrained` from a model that never saw the "
-             "dataset; `guarded`: the same with `--guard`, the re-learned settings where the guard (re-learned on "
-             "2/3 of the *n* recordings, checked on the rest, 3 times) finds they beat VQF's core by one standard "
-             "error, else the core (*guard kept*: in how many "
-             "folds; below 3 recordings never); `scratch`: `togglecf train` on the *n* recordings. "
+             "same *n* recordings; `relearned`: `togglecf train --from-pretrained` (the config's `[gains.relearn]` "
+             "search) from a model that never saw the dataset; `guarded`: the same with `--guard`, the re-learned "
+             "settings where the guard (re-learned on 2/3 of the *n* recordings, checked on the rest, 3 times) finds "
+             "they beat VQF's core by one standard error, else the core (*guard kept*: in how many folds; below 3 "
+             "recordings never); `scratch`: `togglecf train` on the *n* recordings (its `[gains.vqf]` search). "
              "*vs* columns: relative change of the mean, "
              f"wins / ties / losses per trial (tie: |Δ| < {TIE_DEG}°), two-sided Wilcoxon p; *worst group*: the group "
              "(≥ 2 trials) where the learned row does worst against VQF's defaults.", ""]

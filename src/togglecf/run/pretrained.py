@@ -23,14 +23,13 @@ from togglecf.core.io import atomic_write_text, file_sha256
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.registry import VQF_TOGGLING
-from togglecf.run.config import load_config
+from togglecf.run.config import load_config, relearn_search
 from togglecf.run.train import run_training
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.portable import load_portable, save_portable
 from togglecf.filters.vqf_toggling import VQFTogglingSettings
 from togglecf.toggling.gains import (
     MODES,
-    VQFGainSearch,
     learn_modes,
     objective_value,
     settings_from_dict,
@@ -248,8 +247,9 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
     already out-of-sample and no cross-validation is needed (``togglecf train`` cross-validates only to
     get such predictions for its own training trials). On them the settings are learned by the same
     coordinate descent as ``togglecf train`` (``gains.learn_modes``, the config's ``[gains.vqf]``
-    grids, objective and sweeps; ``[run] nthread`` processes), which starts at the VQF core's own
-    settings. The descent is greedy, so it may end above the pretrained settings on these trials;
+    grids, objective and sweeps with ``[gains.relearn]``'s in their place: ``run.config.relearn_search``, by
+    default σ_f, the back-off on the field's change, searched too; ``[run] nthread`` processes), which starts at
+    the VQF core's own settings. The descent is greedy, so it may end above the pretrained settings on these trials;
     each mode keeps whichever of the two scores lower on the descent's objective (``kept``), so on
     these trials the result is never worse than the pretrained model, nor than the core.
 
@@ -287,7 +287,7 @@ def retune_pretrained(config=None, data_dir=None, trials=None, out=None, model=N
     t0 = time.perf_counter()
     preds = [pm.models.predict_samples(t.gyr, t.acc, t.mag, t.fs) for t in loaded]
     timing = {"predictions_s": time.perf_counter() - t0}
-    search = VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
+    search = relearn_search(cfg)
     jobs = int(run["nthread"])
     t0 = time.perf_counter()
     relearned, report = relearn_settings(loaded, preds, pm, modes, search, jobs=jobs, log=say)

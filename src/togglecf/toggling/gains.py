@@ -241,7 +241,8 @@ class VQFGainSearch:
 
     σ_f, the scale of the back-off on the field's change in the 6D earth frame (step 3b of
     ``filters.vqf_toggling``: no model, a physical cue), is off (0) by default; a grid of several
-    values searches it (9D), for data of one sensor.
+    values searches it (9D), for data of one sensor (``togglecf train --from-pretrained`` does by default:
+    ``run.config.relearn_search``).
 
     A step is kept by the one-standard-error rule (``step_rule = "one_se"``, module docstring): the
     descent starts at the core, and a value leaves it only for a gain larger than the scatter of

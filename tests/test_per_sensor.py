@@ -103,6 +103,13 @@ def test_table_and_json(learning_off, mini_index):
     assert all(cells[i] == cells[1] for i in (3, 4, 5))  # the learned rows' means: VQF's defaults (learning off)
     for i in (7, 10, 13):  # re-learned, guarded and scratch against VQF's defaults: three ties each
         assert cells[i].startswith("+0.0 % · 0/3/0"), (i, cells[i])
+    # last: the tuned pair's worst group against VQF's defaults, recomputed from the trials' totals
+    rows, groups = plan["sizes"][0], mini_index.groups
+    change = {g: np.mean([rows["vqf_tuned"][n]["total"] for n in m]) / np.mean([rows["vqf_defaults"][n]["total"]
+                                                                               for n in m]) - 1.0
+              for g, m in groups.items() if len(m) >= 2}
+    worst = max(change, key=change.get)
+    assert len(cells) == 17 and cells[16] == f"{worst} {100.0 * change[worst]:+.1f} %"
     doc = json.loads(json.dumps(per_sensor_json({name: plan})))
     n = plan["folds"][0][0]
     assert doc[name]["sizes"]["0"]["relearned"][n]["total"] == plan["sizes"][0]["relearned"][n]["total"]

@@ -278,7 +278,7 @@ def worst_group(per: dict, ref: dict, groups: dict) -> str:
 def per_sensor_table(results: dict, dirs, command: str) -> str:
     """Markdown: per dataset, one line per training size with the mean total RMSE [°] of ``ROWS`` over
     the held-out trials, each learned row against VQF's defaults and against ``vqf_tuned``, and its
-    worst group against VQF's defaults."""
+    worst group against VQF's defaults; last, ``vqf_tuned``'s worst group against VQF's defaults."""
     by_name = {Path(d).name: Path(d) for d in dirs}
     lines = [generated_line(command), "",
              "Each dataset alone: folds by whole trial within it; each row learned or tuned on *n* of the fold's "
@@ -291,13 +291,14 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
              "recordings never); `scratch`: `togglecf train` on the *n* recordings (its `[gains.vqf]` search). "
              "*vs* columns: relative change of the mean, "
              f"wins / ties / losses per trial (tie: |Δ| < {TIE_DEG}°), two-sided Wilcoxon p; *worst group*: the group "
-             "(≥ 2 trials) where the learned row does worst against VQF's defaults.", ""]
+             "(≥ 2 trials) where the learned row does worst against VQF's defaults; *tuned worst group*: the same for "
+             "`vqf_tuned` (a group the learned rows share it with follows from VQF's two time constants).", ""]
     for ds, plan in results.items():
         index = DatasetIndex.from_dir(by_name[ds])
         lines += [f"## {ds} ({sum(len(f) for f in plan['folds'])} trials, {len(plan['folds'])} folds)", "",
                   "| n | " + " | ".join(f"`{r}`" for r in ROWS) + " | guard kept | "
                   + " | ".join(f"{r} {c}" for r in LEARNED_ROWS for c in ("vs defaults", "vs tuned", "worst group"))
-                  + " |", "|---" * (len(ROWS) + 2 + 3 * len(LEARNED_ROWS)) + "|"]
+                  + " | tuned worst group |", "|---" * (len(ROWS) + 3 + 3 * len(LEARNED_ROWS)) + "|"]
         for size in sorted(plan["sizes"], key=lambda s: (s == 0, s)):
             rows = plan["sizes"][size]
             names = sorted(rows["vqf_defaults"])
@@ -309,9 +310,10 @@ def per_sensor_table(results: dict, dirs, command: str) -> str:
                     continue
                 cmp += [versus(rows[r], rows["vqf_defaults"], names), versus(rows[r], rows["vqf_tuned"], names),
                         worst_group(rows[r], rows["vqf_defaults"], index.groups)]
+            tuned = worst_group(rows["vqf_tuned"], rows["vqf_defaults"], index.groups) if cells[1] else ""
             kept = plan.get("guard_kept", {}).get(size, [])
             guard = f"{sum(kept)}/{len(kept)}" if kept else ""
-            lines.append(f"| {size or 'all'} | " + " | ".join(cells + [guard] + cmp) + " |")
+            lines.append(f"| {size or 'all'} | " + " | ".join(cells + [guard] + cmp + [tuned]) + " |")
         lines.append("")
     return "\n".join(lines)
 

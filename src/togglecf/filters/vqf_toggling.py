@@ -334,15 +334,16 @@ def _heading_gain(st, p, mag):
     ``mag_backoff_measured`` at most the disturbance the magnetometer itself shows,
     (|m − m_ref|_min / σ_m)² (``_field_deviation_sq``); then the larger of that and step 3b's e_f
     (``_field_change``), itself at most f_reject − 1."""
+    cap = max(p.mag_rejection_factor - 1.0, 0.0)
     e = st.mag_disturbance_predicted
     if e > 0.0:
         if p.mag_backoff_measured > 0.5:
             e = min(e, _field_deviation_sq(st, mag) / (p.mag_disturbance_scale * p.mag_disturbance_scale))
         else:
-            e = min(e, max(p.mag_rejection_factor - 1.0, 0.0))
+            e = min(e, cap)
     e_f = st.field_change_disturbance
     if e_f > 0.0:
-        e = max(e, min(e_f, max(p.mag_rejection_factor - 1.0, 0.0)))
+        e = max(e, min(e_f, cap))
     st.mag_backoff = 1.0 + e
     st.mod.k_mag = back_off(st.k_mag_now, e)
 

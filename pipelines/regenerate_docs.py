@@ -41,9 +41,10 @@ placeholder saying how to produce it when there is no file yet):
 * ``--per-sensor-half DIR`` (default ``reports/per_sensor``, the same step's kept-back split or
   ``pipelines/per_sensor.py --half``): ``per_sensor_half.md``.
 * ``--per-sensor-field-change DIR`` (default ``reports/per_sensor``, the learning curve with the field-change
-  back-off searched, or ``pipelines/per_sensor.py --field-change``): ``per_sensor_field_change.md``.
-* ``--per-sensor-half-field-change DIR`` (default ``reports/per_sensor``, that split with the field-change
-  back-off searched, or ``pipelines/per_sensor.py --half --field-change``): ``per_sensor_half_field_change.md``.
+  back-off searched in the scratch training too, or ``pipelines/per_sensor.py --field-change``):
+  ``per_sensor_field_change.md``.
+* ``--per-sensor-half-field-change DIR`` (default ``reports/per_sensor``, that split with it searched in the
+  scratch training too, or ``pipelines/per_sensor.py --half --field-change``): ``per_sensor_half_field_change.md``.
 * ``--headroom DIR`` (default ``reports/headroom``, ``pipelines/headroom.py`` or ``main.py --full``'s
   headroom step): ``headroom.md``.
 

@@ -167,11 +167,13 @@ def test_half_is_the_kept_back_split_in_its_own_files(learning_off, mini_index, 
     with pytest.raises(SystemExit):
         script.main(["--half", "--config", str(tmp_path / "nope.toml")])
     assert f"--config {tmp_path / 'nope.toml'}: no such file" in capsys.readouterr().err
-    # --field-change: the config's [gains.vqf] searches σ_f (FIELD_CHANGE_GRID), its own files and models
+    # --field-change: the config's [gains.vqf] (the scratch training) and [gains.relearn] search σ_f
+    # (FIELD_CHANGE_GRID); its own files and models
     assert script.main(["--half", "--field-change", "--data", str(mini_index.root), "--out", str(tmp_path / "out3"),
                         "--work", str(tmp_path / "w")]) == 0
     assert seen["work"] == tmp_path / "w_half_field_change"
     assert seen["config"]["gains"]["vqf"]["field_change_scale"] == list(FIELD_CHANGE_GRID)
     assert VQFGainSearch.from_dict(seen["config"]["gains"]["vqf"]).field_change_scale == FIELD_CHANGE_GRID
+    assert seen["config"]["gains"]["relearn"]["field_change_scale"] == list(FIELD_CHANGE_GRID)
     assert sorted(q.name for q in (tmp_path / "out3").iterdir()) == ["per_sensor_half_field_change.json",
                                                                      "per_sensor_half_field_change.md"]

@@ -320,7 +320,8 @@ def _retune_metadata(index, names, source_path, pm, search, report: dict, guard:
     data_files = {n: {"file": Path(index.available[n]).name, "sha256": file_sha256(index.available[n])} for n in names}
     return {
         "recipe": "togglecf train --from-pretrained: the pretrained models kept, the learned VQF's settings "
-                  "re-learned on the trials below by the gain search of togglecf train ([gains.vqf])"
+                  "re-learned on the trials below by the gain search of togglecf train ([gains.vqf] with "
+                  "[gains.relearn] in its place)"
                   + (", kept where the guard passed, else the VQF core's" if guard else " (no guard)"),
         "togglecf": __version__,
         "retuned_from": {"file": source_path.name, "sha256": file_sha256(source_path),

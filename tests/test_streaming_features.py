@@ -110,9 +110,9 @@ def _window_features_reference(ring, last):
     return np.array(out + [e / L if np.isfinite(e) else np.nan] + list(last))
 
 
-def test_window_features_bit_for_bit_as_one_column_at_a_time():
-    """The kernel walks four columns side by side (speed); each column's sums keep the ring order, so the
-    row equals a column-at-a-time reference exactly (not within a tolerance), NaN and inf columns included."""
+def test_window_features_bit_for_bit_as_a_plain_reference():
+    """The kernel sums each column in ring order, so its row equals a plain sequential reference exactly (not
+    within a tolerance), NaN and inf columns included; a faster rewrite of the kernel must keep that."""
     from togglecf.features.streaming import AUX_LAST, N_FEATURES, N_LAST, N_RING, window_features
     rng = np.random.default_rng(7)
     for trial in range(20):

@@ -15,8 +15,10 @@ from togglecf import simulate
 from togglecf.core import quaternion as quat
 from togglecf.run.travel import (
     DEFAULT_PAIR,
+    FIELD_CHANGE_SCALES,
     TRIAL_STATISTICS,
     choose_pairs,
+    field_change_on,
     gyro_steps,
     halves,
     leave_dataset_out,
@@ -65,9 +67,14 @@ def test_prediction_scores_are_zero_for_the_truth_and_the_offset_squared_for_a_h
     assert all(math.isnan(s) for s in prediction_scores(t.opt_quat, t, steps, np.zeros_like(everywhere)))
 
 
-def _record(whole, first, second, stat=0.0, score=(0.0, 0.0, 0.0)):
+def _record(whole, first, second, stat=0.0, score=(0.0, 0.0, 0.0), field_change=None):
+    """A trial's record; ``field_change``: its (whole, second) RMSEs per σ_f (default: every σ_f as off, VQF's
+    pair, PAIRS[1])."""
+    k = len(FIELD_CHANGE_SCALES)
+    whole_fc, second_fc = field_change or ([whole[1]] * k, [second[1]] * k)
     return {"whole": list(whole), "first": list(first), "second": list(second), "score_acc": list(score),
-            "score_mag": [0.0] * 3, "stats": {k: stat for k in TRIAL_STATISTICS}, "groups": []}
+            "score_mag": [0.0] * 3, "stats": {k: stat for k in TRIAL_STATISTICS}, "groups": [],
+            "field_change": {"whole": list(whole_fc), "first": list(whole_fc), "second": list(second_fc)}}
 
 
 def test_rows_choose_only_on_what_they_may_see():
@@ -106,6 +113,23 @@ def test_split_rule_finds_the_statistic_that_separates_the_preferences():
     assert pair_on(records, [], PAIRS) == PAIRS.index(DEFAULT_PAIR)
 
 
+def test_field_change_row_takes_the_scale_best_on_the_other_datasets():
+    """Dataset a's trials are best at the second σ_f (10 µT) on their whole trials, b's trial at σ_f 0: b left
+    out is scored at a's choice on its second half, a left out at b's (off: VQF's own pair's value)."""
+    assert FIELD_CHANGE_SCALES[:2] == (0.0, 10.0)
+    k = len(FIELD_CHANGE_SCALES)
+    a_fc = ([2.0, 1.0] + [1.5] * (k - 2), [2.0, 1.1] + [1.6] * (k - 2))
+    records = {f"a/{i}": _record([2.0, 2.0, 2.0], [2.0] * 3, [2.0] * 3, field_change=a_fc) for i in range(3)}
+    records["b/x"] = _record([1.0, 1.0, 1.0], [1.0] * 3, [3.0, 3.0, 3.0],
+                             field_change=([1.0] + [5.0] * (k - 1), [3.0, 1.2] + [2.5] * (k - 2)))
+    left = leave_dataset_out(records, PAIRS)
+    assert left["b"]["rules"]["field_change_other"] == 10.0
+    assert left["b"]["rows"]["field_change_other"]["b/x"]["total"] == 1.2
+    assert left["a"]["rules"]["field_change_other"] == 0.0
+    assert left["a"]["rows"]["field_change_other"]["a/0"]["total"] == left["a"]["rows"]["defaults"]["a/0"]["total"]
+    assert field_change_on(records, []) == 0
+
+
 @pytest.mark.slow
 def test_quick_run_on_two_datasets_writes_the_table(mini_index, tmp_path):
     """Two copies of the mini trials as two datasets: the script writes a table whose every left-out row
@@ -126,9 +150,11 @@ def test_quick_run_on_two_datasets_writes_the_table(mini_index, tmp_path):
     n = len(mini_index.available)
     for ds in ("one", "two"):
         rows = result["left_out"][ds]["rows"]
-        assert all(len(per) == n for per in rows.values())
-        # the oracle is at least as good as every row on every trial
+        assert all(len(per) == n for per in rows.values()) and "field_change_other" in rows
+        # the oracle is at least as good as every row of a pair on every trial (the field-change row is not one)
         for row, per in rows.items():
+            if row == "field_change_other":
+                continue
             assert all(rows["trial_oracle"][k]["total"] <= v["total"] + 1e-12 for k, v in per.items()), row
 
 

@@ -20,6 +20,11 @@ it is scored on:
 * ``self_tuned``: no training at all: the pair whose orientation, carried forward ``horizon_s`` by the
   gyroscope alone, best predicts the accelerometer's gravity and the magnetometer's north on the first
   half's clean samples (``prediction_scores``).
+* ``field_change_other``: VQF's own pair with the learned VQF's field-change back-off (step 3b of
+  ``filters.vqf_toggling``: nothing learned, the heading correction slowed while the field in the earth frame
+  of VQF's 6D estimate changes), its scale σ_f chosen on the *other* datasets (``field_change_on``, the same
+  objective as ``tagp_other``) from ``FIELD_CHANGE_SCALES``, the grid the re-learning on one sensor searches
+  (``run.config.RELEARN_DEFAULTS``): does a physical rule with one scale in µT travel where a pair does not?
 * ``first_half_reference`` (needs the reference, so no filter can do it): the pair best on the trial's
   own first half, scored on its second half: how much of a trial's preference persists in time.
 * ``trial_oracle`` (ceiling): the pair best on the second half itself.
@@ -44,16 +49,19 @@ from togglecf.core.provenance import generated_line
 from togglecf.data.broad import DatasetIndex
 from togglecf.filters.base import propagate_gyro
 from togglecf.filters.vqf_core import VQFCoreFilter, VQFCoreSettings
+from togglecf.filters.vqf_toggling import VQFTogglingFilter, VQFTogglingSettings
 from togglecf.learn.folds import trial_folds
 from togglecf.metrics.broad import trial_errors
 from togglecf.parallel.backend import LocalBackend
+from togglecf.run.config import RELEARN_DEFAULTS
 from togglecf.run.per_sensor import versus, worst_group
 from togglecf.run.study import load_study_config
 from togglecf.toggling.gains import objective_value
 
 __all__ = ["TRIAL_STATISTICS", "ROWS", "CEILING_ROWS", "TravelSettings", "travel_settings", "halves",
            "trial_statistics", "gyro_steps", "prediction_scores", "trial_record", "pair_on", "split_rule", "choose_pairs",
-           "leave_dataset_out", "within_dataset", "travel", "travel_table", "travel_json", "run_travel"]
+           "FIELD_CHANGE_SCALES", "field_change_on", "choose_field_change", "leave_dataset_out", "within_dataset",
+           "travel", "travel_table", "travel_json", "run_travel"]
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +78,13 @@ TRIAL_STATISTICS = {
     "rest_frac": "fraction of samples VQF (at its defaults) detects as rest",
 }
 #: rows every left-out dataset gets, in order; ``split_<statistic>`` rows follow ``tagp_other``
-ROWS = ("defaults", "tagp_other", "self_tuned", "first_half_reference", "trial_oracle")
+ROWS = ("defaults", "tagp_other", "field_change_other", "self_tuned", "first_half_reference", "trial_oracle")
 #: rows that need the reference on the trial itself (ceilings, not filters)
 CEILING_ROWS = ("first_half_reference", "trial_oracle")
 #: VQF's own pair [s]
 DEFAULT_PAIR = (3.0, 9.0)
+#: σ_f [µT] of the field-change row (0: off, VQF's defaults): the re-learning's grid, fixed before this row
+FIELD_CHANGE_SCALES = tuple(float(v) for v in RELEARN_DEFAULTS["field_change_scale"])
 #: first-half samples whose |a| is within this fraction of its median count as clean for the gravity score
 _CLEAN_ACC = 0.02
 #: ... and whose |m| within this fraction and dip within this angle [deg] of their medians for the north score
@@ -210,7 +220,8 @@ def trial_record(root, name: str, settings: TravelSettings) -> dict:
     """One trial of the dataset at ``root`` on the grid: ``"groups"``; ``"stats"`` (``TRIAL_STATISTICS``);
     per pair (``settings.pairs`` order) the total RMSE [deg] on the whole trial (``"whole"``), its first
     (``"first"``) and second half (``"second"``), and the reference-free scores on the first half
-    (``"score_acc"``, ``"score_mag"`` [rad²], ``prediction_scores``)."""
+    (``"score_acc"``, ``"score_mag"`` [rad²], ``prediction_scores``); ``"field_change"``: the same three
+    RMSEs per σ_f of ``FIELD_CHANGE_SCALES`` at VQF's own pair (σ_f 0: that pair's own values)."""
     index = DatasetIndex.from_dir(root)
     trial = index.load(name)
     first, second = halves(trial.movement)
@@ -227,7 +238,28 @@ def trial_record(root, name: str, settings: TravelSettings) -> dict:
         if (tau_acc, tau_mag) == DEFAULT_PAIR:
             d = out.diagnostics
             stats = trial_statistics(trial, d["rest"] > 0.5, d["mag_dist"] > 0.5, first)
-    return {"groups": list(index.trial_groups(name)), "stats": stats, **rec}
+    default = settings.pairs.index(DEFAULT_PAIR)
+    field_change = {key: [] for key in ("whole", "first", "second")}
+    for scale in FIELD_CHANGE_SCALES:
+        if scale == 0.0:  # off: the core at VQF's pair, already run
+            for key in field_change:
+                field_change[key].append(rec[key][default])
+            continue
+        out = VQFTogglingFilter(trial.fs, VQFTogglingSettings(tau_acc=DEFAULT_PAIR[0], tau_mag=DEFAULT_PAIR[1],
+                                                              field_change_scale=scale)).update_batch(
+            trial.gyr, trial.acc, trial.mag)
+        for key, mask in (("whole", trial.movement), ("first", first), ("second", second)):
+            field_change[key].append(float(trial_errors(out.quat, trial.opt_quat, mask)["total"]))
+    return {"groups": list(index.trial_groups(name)), "stats": stats, **rec, "field_change": field_change}
+
+
+def _best_column(whole, default: int, names) -> int:
+    """The column of ``whole`` ``(len(names), k)`` [deg] with the least worst dataset's mean per-trial
+    ln(RMSE / RMSE in column ``default``) (``objective_value``)."""
+    datasets = np.array([n.partition("/")[0] for n in names])
+    values = [objective_value("worst_dataset_log_ratio", whole[:, i], whole[:, default], datasets)
+              for i in range(whole.shape[1])]
+    return int(np.nanargmin(values))
 
 
 def pair_on(records: dict, names, pairs) -> int:
@@ -237,11 +269,23 @@ def pair_on(records: dict, names, pairs) -> int:
     default = pairs.index(DEFAULT_PAIR)
     if not names:
         return default
-    whole = np.array([records[n]["whole"] for n in names])
-    datasets = np.array([n.partition("/")[0] for n in names])
-    values = [objective_value("worst_dataset_log_ratio", whole[:, i], whole[:, default], datasets)
-              for i in range(len(pairs))]
-    return int(np.nanargmin(values))
+    return _best_column(np.array([records[n]["whole"] for n in names]), default, names)
+
+
+def field_change_on(records: dict, names) -> int:
+    """The index into ``FIELD_CHANGE_SCALES`` best over the trials ``names`` on their whole trials, with
+    ``pair_on``'s objective against σ_f 0 (VQF's defaults); 0 (off) when ``names`` is empty."""
+    off = FIELD_CHANGE_SCALES.index(0.0)
+    if not names:
+        return off
+    return _best_column(np.array([records[n]["field_change"]["whole"] for n in names]), off, names)
+
+
+def choose_field_change(records: dict, train, test) -> tuple[dict, float]:
+    """The field-change row: ``({trial of test: {"total": its second-half RMSE [deg]}}, σ_f [µT])``, σ_f
+    chosen on ``train`` (``field_change_on``)."""
+    i = field_change_on(records, train)
+    return {n: {"total": records[n]["field_change"]["second"][i]} for n in test}, FIELD_CHANGE_SCALES[i]
 
 
 def split_rule(records: dict, names, statistic: str, pairs) -> dict | None:
@@ -295,7 +339,8 @@ def _self_tuned_choice(record: dict, default: int) -> int:
 def choose_pairs(records: dict, train, test, pairs) -> tuple[dict, dict]:
     """Every row's pair (an index into ``pairs``) for each trial of ``test``, chosen on ``train`` (other
     trials) or on the test trial's first half. Returns ``(rows, rules)``: row -> trial -> index, and
-    row -> the rule chosen on ``train`` (the pair, or the split)."""
+    row -> the rule chosen on ``train`` (the pair, or the split). The field-change row is not a pair:
+    ``choose_field_change``."""
     default = pairs.index(DEFAULT_PAIR)
     tagp = pair_on(records, train, pairs)
     rows = {"defaults": {n: default for n in test}, "tagp_other": {n: tagp for n in test}}
@@ -335,7 +380,9 @@ def leave_dataset_out(records: dict, pairs) -> dict:
         test = _scored_names(records, pairs, ds)
         train = sorted(n for n in records if n.partition("/")[0] != ds)
         rows, rules = choose_pairs(records, train, test, pairs)
-        out[ds] = {"rows": _scored(records, rows), "rules": rules}
+        scored = _scored(records, rows)
+        scored["field_change_other"], rules["field_change_other"] = choose_field_change(records, train, test)
+        out[ds] = {"rows": scored, "rules": rules}
     return out
 
 
@@ -347,10 +394,12 @@ def within_dataset(records: dict, pairs, folds: int) -> dict:
         names = _scored_names(records, pairs, ds)
         rows: dict = {}
         for test in trial_folds(names, min(folds, len(names)), 0):
-            chosen, _ = choose_pairs(records, [n for n in names if n not in test], list(test), pairs)
-            for row, per in chosen.items():
+            train = [n for n in names if n not in test]
+            chosen, _ = choose_pairs(records, train, list(test), pairs)
+            for row, per in _scored(records, chosen).items():
                 rows.setdefault(row, {}).update(per)
-        out[ds] = {"rows": _scored(records, rows)}
+            rows.setdefault("field_change_other", {}).update(choose_field_change(records, train, list(test))[0])
+        out[ds] = {"rows": rows}
     return out
 
 
@@ -387,6 +436,8 @@ def _pair(p) -> str:
 def _rule_text(rule) -> str:
     if rule is None:
         return ""
+    if isinstance(rule, float):  # the field-change row's σ_f
+        return f"σ_f {rule:g} µT at {_pair(DEFAULT_PAIR)}" if rule > 0.0 else f"σ_f 0 (off): {_pair(DEFAULT_PAIR)}"
     if isinstance(rule, list):
         return _pair(rule)
     return f"≤ {rule['threshold']:.3g}: {_pair(rule['low'])}, else {_pair(rule['high'])}"
@@ -409,7 +460,11 @@ def travel_table(result: dict, command: str) -> str:
              "RMSE [°]). `split_<statistic>`: one statistic of the trial's first half against a threshold, a pair "
              "on each side, all chosen on the training trials; `self_tuned`: the pair whose orientation, carried "
              f"{result['horizon_s']:g} s forward by the gyroscope alone, best predicts gravity and north on the "
-             "first half's clean samples. *vs VQF*: relative change of the mean, wins / ties / losses per trial, "
+             "first half's clean samples; `field_change_other`: VQF's own pair with the learned VQF's field-change "
+             "back-off (nothing learned: the heading correction slowed while the field in the earth frame of VQF's "
+             "6D estimate changes), its scale σ_f chosen on the training trials from "
+             f"{', '.join(f'{v:g}' for v in FIELD_CHANGE_SCALES)} µT (the re-learning's grid). "
+             "*vs VQF*: relative change of the mean, wins / ties / losses per trial, "
              "two-sided Wilcoxon p; *worst group*: the group (≥ 2 trials) where the row does worst against VQF.", "",
              "| statistic | what it is |", "|---|---|"]
     lines += [f"| `{k}` | {v} |" for k, v in TRIAL_STATISTICS.items()] + [""]

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib.util
 
-import math
 import os
 import platform
 import sys
@@ -64,18 +63,31 @@ def out_path(args, name: str):
     return None if args.quick else BENCH_DIR / name
 
 
-def best_interleaved(fns: dict, repeats: int) -> dict:
-    """Best wall time [s] of each callable over ``repeats`` rounds, alternating within each round
-    (load from other processes hits all alike), after one untimed warm-up round (JIT, caches)."""
+def interleaved_times(fns: dict, repeats: int) -> dict:
+    """Wall times [s] of each callable in each of ``repeats`` rounds (a list per callable), alternating
+    within each round (load from other processes hits all alike), after one untimed warm-up round (JIT,
+    caches)."""
     for fn in fns.values():
         fn()
-    best = {k: math.inf for k in fns}
+    times = {k: [] for k in fns}
     for _ in range(repeats):
         for k, fn in fns.items():
             t0 = time.perf_counter()
             fn()
-            best[k] = min(best[k], time.perf_counter() - t0)
-    return best
+            times[k].append(time.perf_counter() - t0)
+    return times
+
+
+def best_interleaved(fns: dict, repeats: int) -> dict:
+    """Best wall time [s] of each callable over ``repeats`` interleaved rounds (``interleaved_times``)."""
+    return {k: min(v) for k, v in interleaved_times(fns, repeats).items()}
+
+
+def round_ratios(times: dict, key: str, ref: str) -> tuple[float, float, float]:
+    """``(lowest, median, highest)`` over the rounds of ``interleaved_times`` of ``key``'s time over ``ref``'s
+    in the same round: how far the ratio of the best times can be trusted on a machine whose speed moves."""
+    r = np.asarray(times[key]) / np.asarray(times[ref])
+    return float(r.min()), float(np.median(r)), float(r.max())
 
 
 def vqf_batch(fs: float, gyr, acc, mag=None):

@@ -67,3 +67,15 @@ def test_quick_mode_without_out_writes_nothing(tmp_path, monkeypatch, mini_index
     res = mod.main(["--quick", "--repeats", "1"])
     assert res["paths"] == {} and not (tmp_path / "reports").exists()
     assert res["ratio"] == pytest.approx(res["core_us"] / res["vqf_us"])
+
+
+def test_round_ratios_pair_each_round_with_its_own_reference():
+    """Each round's time over the reference's in the same round (not the ratio of the best times): a round
+    where the machine was slow for both gives the same ratio as a fast one."""
+    common = _load("bench_common")
+    times = {"loop": [2.0, 3.0, 4.0], "vqf": [1.0, 2.0, 2.0]}
+    assert common.round_ratios(times, "loop", "vqf") == (1.5, 2.0, 2.0)
+    calls = []
+    got = common.interleaved_times({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, 2)
+    assert calls == ["a", "b"] * 3  # a warm-up round, then the rounds alternate
+    assert [len(v) for v in got.values()] == [2, 2]

@@ -1,6 +1,7 @@
 """Backends without a cluster: the resumable sweep journal, failed trials, clear backend errors."""
 import json
 import sys
+import types
 
 import pandas as pd
 import pytest
@@ -191,3 +192,26 @@ def test_run_tasks_mixes_functions_and_returns_in_task_order(backend):
     assert list(done.values()) == [0, 1, 4, -5]
     with pytest.raises(ValueError, match="trial 7: bad"):
         be.run_tasks(backend, tasks + [be.Task("c", _fail, ("trial 7",))])
+
+
+def test_a_failed_handshake_is_tried_once_more_then_reported(monkeypatch):
+    """distributed's Client asserts on its first reply when a busy scheduler batched it with another message:
+    DaskBackend connects once more; failing every time is an unreachable scheduler (BackendError's one line)."""
+    calls = []
+
+    class FlakyClient:
+        scheduler = types.SimpleNamespace(address="tcp://h:8786")
+
+        def __init__(self, address, timeout):
+            calls.append(address)
+            if len(calls) < fails_before_ok:
+                raise AssertionError
+
+    monkeypatch.setitem(sys.modules, "distributed", types.SimpleNamespace(Client=FlakyClient))
+    fails_before_ok = 2
+    assert be.DaskBackend("tcp://h:8786").address == "tcp://h:8786" and len(calls) == 2
+    calls.clear()
+    fails_before_ok = be.CONNECT_ATTEMPTS + 1
+    with pytest.raises(be.BackendError, match="cannot reach Dask scheduler at tcp://h:8786.*handshake failed"):
+        be.DaskBackend("tcp://h:8786")
+    assert len(calls) == be.CONNECT_ATTEMPTS

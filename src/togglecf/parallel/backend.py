@@ -44,9 +44,9 @@ CONNECT_ATTEMPTS = 2
 
 def _connect(client_cls, scheduler, timeout: float):
     """``client_cls(scheduler, timeout=timeout)`` (a ``distributed.Client``), once more when its handshake
-    fails distributed's own assertion: a busy scheduler can batch its first reply to a new client with another
-    message, which ``Client._ensure_connected`` refuses (seen in the test suite under load; nothing of ours
-    to fix); a second failure is a ``ValueError`` (reported as an unreachable scheduler)."""
+    fails distributed's own assertion (``Client._ensure_connected`` expects exactly one message as the
+    scheduler's first reply; it got another once in the test suite, on a loaded machine); a second failure is
+    a ``ValueError`` (reported as an unreachable scheduler)."""
     for attempt in range(1, CONNECT_ATTEMPTS + 1):
         try:
             return client_cls(scheduler, timeout=timeout)

@@ -1,5 +1,7 @@
 """Backends without a cluster: the resumable sweep journal, failed trials, clear backend errors."""
 import json
+import os
+import subprocess
 import sys
 import types
 
@@ -146,6 +148,22 @@ def test_store_serves_a_trial_under_another_index_by_its_name_there(synth, tmp_p
             r = second.results[i][f"{prefix}/{n}"]
             assert r.trial == f"{prefix}/{n}" and r.groups == multi.trial_groups(f"{prefix}/{n}")
             assert r.errors == first.results[i][n].errors
+
+
+def test_numba_imported_first_still_caches_in_the_content_keyed_directory():
+    """A script that imports numba before togglecf (numba reads NUMBA_CACHE_DIR at its import): the package's
+    kernels still cache in the directory keyed on the package's content, not beside their sources (keyed on each
+    kernel's own file, which runs stale code after an edit of a function inlined from another file)."""
+    code = ("import numba, os\n"
+            "import togglecf\n"
+            "from numba.core import config\n"
+            "from togglecf.filters.timeconst import gain_from_tau\n"
+            "assert config.CACHE_DIR == os.environ['NUMBA_CACHE_DIR'], config.CACHE_DIR\n"
+            "assert togglecf.source_digest()[:16] in config.CACHE_DIR\n"
+            "assert gain_from_tau._cache._cache_path.startswith(config.CACHE_DIR), gain_from_tau._cache._cache_path\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
 
 
 def test_source_digest_follows_the_source(tmp_path):

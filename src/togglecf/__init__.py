@@ -6,6 +6,7 @@ float64, one sample a row; the sampling rate is always passed explicitly.
 """
 import hashlib as _hashlib
 import os as _os
+import sys as _sys
 from pathlib import Path as _Path
 
 __version__ = "0.1.0"
@@ -36,8 +37,14 @@ def _numba_cache_dir() -> str:
     return _os.path.join(base, "togglecf", "numba", f"{__version__}-{source_digest()[:16]}")
 
 
-if "NUMBA_CACHE_DIR" not in _os.environ:  # must be set before numba is first imported
+if "NUMBA_CACHE_DIR" not in _os.environ:
     _os.environ["NUMBA_CACHE_DIR"] = _numba_cache_dir()
+    # numba reads the variable when it is first imported; imported before togglecf (a script's own
+    # ``from numba import njit`` first), it would cache the package's kernels beside their sources, keyed on
+    # each kernel's own file only, and run stale code after an edit of a function it inlines from another file.
+    # Its locator reads the setting when a kernel is decorated, after this
+    if "numba" in _sys.modules:
+        _sys.modules["numba"].core.config.CACHE_DIR = _os.environ["NUMBA_CACHE_DIR"]
 
 
 def __getattr__(name):

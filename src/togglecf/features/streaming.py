@@ -111,47 +111,76 @@ def push_sample(ring, aux, params, last_src, gyr, acc, mag):
     aux[1] = pos + 1 if pos + 1 < L else 0  # (pos + 1) mod L without a division
 
 
+assert N_RING % 4 == 0, "window_features walks the ring's columns four at a time"
+
+
+@njit(cache=True, inline="always")
+def _four_columns(ring, c):
+    """Sums, minima, maxima and sums of squared deviations from the mean of ring columns ``c`` to
+    ``c + 3``, each summed in ring order (tuples of four). Four columns side by side: each sum is a chain
+    of dependent additions, and four independent chains run in the time of one (the values are the
+    same bit for bit as one column at a time)."""
+    L = ring.shape[0]
+    s0 = s1 = s2 = s3 = 0.0
+    lo0 = hi0 = ring[0, c]
+    lo1 = hi1 = ring[0, c + 1]
+    lo2 = hi2 = ring[0, c + 2]
+    lo3 = hi3 = ring[0, c + 3]
+    for i in range(L):
+        v0, v1, v2, v3 = ring[i, c], ring[i, c + 1], ring[i, c + 2], ring[i, c + 3]
+        s0 += v0
+        s1 += v1
+        s2 += v2
+        s3 += v3
+        lo0, hi0 = v0 if v0 < lo0 else lo0, v0 if v0 > hi0 else hi0
+        lo1, hi1 = v1 if v1 < lo1 else lo1, v1 if v1 > hi1 else hi1
+        lo2, hi2 = v2 if v2 < lo2 else lo2, v2 if v2 > hi2 else hi2
+        lo3, hi3 = v3 if v3 < lo3 else lo3, v3 if v3 > hi3 else hi3
+    m0, m1, m2, m3 = s0 / L, s1 / L, s2 / L, s3 / L  # non-finite with a non-finite value: then unused
+    q0 = q1 = q2 = q3 = 0.0
+    for i in range(L):
+        d0, d1, d2, d3 = ring[i, c] - m0, ring[i, c + 1] - m1, ring[i, c + 2] - m2, ring[i, c + 3] - m3
+        q0 += d0 * d0
+        q1 += d1 * d1
+        q2 += d2 * d2
+        q3 += d3 * d3
+    return (s0, s1, s2, s3), (lo0, lo1, lo2, lo3), (hi0, hi1, hi2, hi3), (q0, q1, q2, q3)
+
+
+@njit(cache=True, inline="always")
+def _column_features(out, c, L, total, lo, hi, sq_dev):
+    """Ring column ``c``'s features into ``out``: a window channel's mean, std, min, max (all missing
+    when the window holds a non-finite value: the mean is finite iff the sum is), the energy column's
+    mean."""
+    nw = N_WINDOW
+    mean = total / L
+    if c == nw:
+        out[4 * nw] = mean if math.isfinite(mean) else math.nan
+    elif not math.isfinite(mean):
+        for j in range(4):
+            out[4 * c + j] = math.nan
+    else:
+        out[4 * c] = mean
+        out[4 * c + 1] = math.sqrt(sq_dev / L)
+        out[4 * c + 2] = lo
+        out[4 * c + 3] = hi
+
+
 @njit(cache=True)
 def window_features(ring, aux, out):
     """Feature row of the window ending at the last pushed sample (needs ``L`` samples).
 
-    Channels outer, samples inner: each channel's sum, extremes and squared deviations are summed in
-    ring order in local variables (kept in registers; accumulators in arrays would be stored and
-    reloaded at every sample, as numba cannot prove they do not alias the ring), the same values bit
-    for bit as a loop over the rows."""
+    Each column's sum, extremes and squared deviations are summed in ring order in local variables,
+    four columns side by side (``_four_columns``), the same values bit for bit as a loop over the rows."""
     L = ring.shape[0]
-    nw = ring.shape[1] - 1
-    for c in range(nw):
-        s = 0.0
-        lo = ring[0, c]
-        hi = ring[0, c]
-        for i in range(L):
-            v = ring[i, c]
-            s += v
-            if v < lo:
-                lo = v
-            if v > hi:
-                hi = v
-        mean = s / L  # non-finite with a non-finite value in the window: then unused
-        if not math.isfinite(mean):  # (finite iff the sum is) a non-finite value in the window:
-            # the channel's stats are missing
-            for j in range(4):
-                out[4 * c + j] = math.nan
-            continue
-        ss = 0.0
-        for i in range(L):
-            d = ring[i, c] - mean
-            ss += d * d
-        out[4 * c] = mean
-        out[4 * c + 1] = math.sqrt(ss / L)
-        out[4 * c + 2] = lo
-        out[4 * c + 3] = hi
-    e = 0.0
-    for i in range(L):
-        e += ring[i, nw]
-    out[4 * nw] = e / L if math.isfinite(e) else math.nan
+    for c in range(0, N_RING, 4):
+        s, lo, hi, q = _four_columns(ring, c)
+        _column_features(out, c, L, s[0], lo[0], hi[0], q[0])
+        _column_features(out, c + 1, L, s[1], lo[1], hi[1], q[1])
+        _column_features(out, c + 2, L, s[2], lo[2], hi[2], q[2])
+        _column_features(out, c + 3, L, s[3], lo[3], hi[3], q[3])
     for j in range(N_LAST):
-        out[4 * nw + 1 + j] = aux[AUX_LAST + j]
+        out[4 * N_WINDOW + 1 + j] = aux[AUX_LAST + j]
 
 
 class StreamingFeatures:

@@ -216,6 +216,13 @@ def prediction_scores(q_est, trial, steps: tuple[int, np.ndarray], mask) -> tupl
     return score_acc, score_mag
 
 
+def _append_totals(rec: dict, q_est, trial, first, second) -> None:
+    """Append to ``rec``'s ``"whole"``, ``"first"``, ``"second"`` lists the total RMSE [deg] of ``q_est``
+    ``(N, 4)`` on the trial's movement samples and on its two halves (``halves``)."""
+    for key, mask in (("whole", trial.movement), ("first", first), ("second", second)):
+        rec[key].append(float(trial_errors(q_est, trial.opt_quat, mask)["total"]))
+
+
 def trial_record(root, name: str, settings: TravelSettings) -> dict:
     """One trial of the dataset at ``root`` on the grid: ``"groups"``; ``"stats"`` (``TRIAL_STATISTICS``);
     per pair (``settings.pairs`` order) the total RMSE [deg] on the whole trial (``"whole"``), its first
@@ -230,8 +237,7 @@ def trial_record(root, name: str, settings: TravelSettings) -> dict:
     for tau_acc, tau_mag in settings.pairs:
         out = VQFCoreFilter(trial.fs, replace(VQFCoreSettings(), tau_acc=tau_acc, tau_mag=tau_mag)).update_batch(
             trial.gyr, trial.acc, trial.mag)
-        for key, mask in (("whole", trial.movement), ("first", first), ("second", second)):
-            rec[key].append(float(trial_errors(out.quat, trial.opt_quat, mask)["total"]))
+        _append_totals(rec, out.quat, trial, first, second)
         score_acc, score_mag = prediction_scores(out.quat, trial, steps, first)
         rec["score_acc"].append(score_acc)
         rec["score_mag"].append(score_mag)
@@ -248,8 +254,7 @@ def trial_record(root, name: str, settings: TravelSettings) -> dict:
         out = VQFTogglingFilter(trial.fs, VQFTogglingSettings(tau_acc=DEFAULT_PAIR[0], tau_mag=DEFAULT_PAIR[1],
                                                               field_change_scale=scale)).update_batch(
             trial.gyr, trial.acc, trial.mag)
-        for key, mask in (("whole", trial.movement), ("first", first), ("second", second)):
-            field_change[key].append(float(trial_errors(out.quat, trial.opt_quat, mask)["total"]))
+        _append_totals(field_change, out.quat, trial, first, second)
     return {"groups": list(index.trial_groups(name)), "stats": stats, **rec, "field_change": field_change}
 
 

@@ -213,7 +213,7 @@ def test_run_tasks_mixes_functions_and_returns_in_task_order(backend):
 
 
 def test_a_failed_handshake_is_tried_once_more_then_reported(monkeypatch):
-    """distributed's Client asserts on its first reply when a busy scheduler batched it with another message:
+    """distributed's Client asserted on the scheduler's first reply once in the test suite (a loaded machine):
     DaskBackend connects once more; failing every time is an unreachable scheduler (BackendError's one line)."""
     calls = []
 

@@ -32,6 +32,54 @@ def test_worst_dataset_log_ratio_by_hand():
         objective_value("median", rmse, start, ds)
 
 
+def test_mean_dataset_log_ratio_by_hand():
+    # dataset a: ratios 0.8 and 0.9 -> mean ln(0.8·0.9)/2; dataset b: ratio 1 on its trial -> 0
+    start = np.array([2.0, 1.0, 10.0])
+    helps_a = np.array([1.6, 0.9, 10.0])
+    mean_a = 0.5 * (math.log(0.8) + math.log(0.9))
+    assert objective_value("mean_dataset_log_ratio", helps_a, start, ["a", "a", "b"]) == pytest.approx(0.5 * mean_a)
+    # the worst dataset's objective refuses that step (b gains nothing; only the 1e-3 tie-break moves)
+    assert objective_value("worst_dataset_log_ratio", helps_a, start, np.array(["a", "a", "b"])) == pytest.approx(
+        1e-3 * 0.5 * mean_a)
+    # no dataset may end above learning off, however much the other gains: +inf
+    trade = np.array([1.0, 0.5, 10.1])
+    assert objective_value("mean_dataset_log_ratio", trade, start, np.array(["a", "a", "b"])) == math.inf
+    # one dataset: its mean, as the worst dataset's objective without the tie-break
+    one = np.array(["a", "a", "a"])
+    assert objective_value("mean_dataset_log_ratio", helps_a, start, one) == pytest.approx(
+        np.mean(np.log(helps_a / start)))
+    # its step margin: the SE of the mean of the per-dataset means, √(SE_a² + SE_b²) / 2
+    current = np.full(6, 2.0)
+    ch = np.array([-0.1, 0.0, 0.1, -0.02, 0.0, 0.02])
+    ds = np.array(["a"] * 3 + ["b"] * 3)
+    se_a, se_b = np.std(ch[:3], ddof=1) / math.sqrt(3), np.std(ch[3:], ddof=1) / math.sqrt(3)
+    assert step_margin("one_se", "mean_dataset_log_ratio", current * np.exp(ch), current, ds) == pytest.approx(
+        math.sqrt(se_a ** 2 + se_b ** 2) / 2, rel=1e-12)
+
+
+def test_mean_dataset_objective_keeps_a_step_that_helps_one_dataset_more_than_the_other(monkeypatch):
+    """The descent (gains._descend) on made-up RMSEs of two datasets of 6 trials, each step's per-trial change
+    scattered by ±2 % (a) and ±0.2 % (b) around its mean: τ_acc[rest] 5 s lowers a's by 10 % and b's by 0.1 %;
+    2 s lowers a's by 20 % and raises b's by 1 %. The worst dataset's objective keeps neither (b's 0.1 % is
+    within a's scatter, the margin); the mean over datasets keeps 5 s and refuses 2 s (b above learning off)."""
+    sign = np.array([1.0, -1.0] * 3)
+
+    def fake_rmse(settings, trials, predictions, use_mag=True, pool=None):
+        tau = settings.tau_acc_states[0]
+        if tau == 3.0:
+            return np.ones(12)
+        a, b = (0.9, 0.999) if tau == 5.0 else (0.8, 1.01)
+        return np.r_[a * np.exp(0.02 * sign), b * np.exp(0.002 * sign)]
+
+    monkeypatch.setattr(gains_module, "trial_total_rmse", fake_rmse)
+    trials = [f"a/{i}" for i in range(6)] + [f"b/{i}" for i in range(6)]
+    for objective, expected in (("worst_dataset_log_ratio", 3.0), ("mean_dataset_log_ratio", 5.0)):
+        search = VQFGainSearch(tau_acc=(2.0, 3.0, 5.0), confidence_floor=(0.0,), mag_disturbance_scale=(0.0,),
+                               sweeps=1, objective=objective)
+        settings, _ = learn_gains(trials, [None] * 12, ("rest", "rotation"), None, search=search, memo=None)
+        assert settings.tau_acc_states[0] == expected, objective
+
+
 def test_one_standard_error_margin_by_hand():
     # dataset a: per-trial ln changes -0.1, 0, 0.1, 0 -> SE = std(ddof=1) / 2 = 0.0408; dataset b: all -0.01 -> SE 0
     current = np.full(7, 2.0)

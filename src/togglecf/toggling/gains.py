@@ -14,6 +14,10 @@ heading offset removed):
   ties. No dataset can dominate: a change is kept only where it helps the dataset it helps least,
   and a trial counts by its relative change, so the datasets with the largest errors do not choose
   the values for everyone.
+* ``"mean_dataset_log_ratio"``: the same per-dataset means, averaged over the datasets, and no step may leave a
+  dataset's mean above 0 (worse than learning off: the value is then +inf). A change that helps some datasets
+  and leaves the others where learning off has them is kept, which the worst dataset's mean refuses (it must
+  help every dataset); no training dataset pays for another's gain. With one dataset it is its mean.
 * ``"mean_rmse"``: the mean total RMSE over all trials (the trials with the largest errors weigh most).
 
 When a step is kept (``STEP_RULES``): ``"any_gain"`` keeps a candidate that lowers the objective at
@@ -60,7 +64,7 @@ _TAU_GRID = (-1.0, 116.7, 35.0, 17.5, 6.998, 3.498, 1.748, 0.6982, 0.3482, 0.173
 GAINS_FORMAT = 2
 
 #: objectives of the descent (module docstring)
-OBJECTIVES = ("worst_dataset_log_ratio", "mean_rmse")
+OBJECTIVES = ("worst_dataset_log_ratio", "mean_dataset_log_ratio", "mean_rmse")
 #: weight of the mean over datasets beside the worst one (ties of the worst dataset)
 _TIE_BREAK = 1e-3
 #: when the descent keeps a step (module docstring)
@@ -83,12 +87,15 @@ def objective_value(name: str, rmse, start_rmse, datasets) -> float:
     rmse, start_rmse = np.asarray(rmse, np.float64), np.asarray(start_rmse, np.float64)
     if name == "mean_rmse":
         return float(np.mean(rmse))
-    if name != "worst_dataset_log_ratio":
+    if name not in OBJECTIVES:
         raise ValueError(f"gain objective must be one of {OBJECTIVES}, got {name!r}")
+    datasets = np.asarray(datasets)
     ok, ratio = _log_ratios(rmse, start_rmse)
     per = [float(np.mean(ratio[ok & (datasets == d)])) for d in np.unique(datasets[ok])]
     if not per:
         return float("nan")
+    if name == "mean_dataset_log_ratio":
+        return float(np.mean(per)) if max(per) <= 0.0 else math.inf
     return max(per) + _TIE_BREAK * float(np.mean(per))
 
 
@@ -103,8 +110,9 @@ def step_margin(rule: str, objective: str, rmse, current_rmse, datasets) -> floa
     """How much a candidate with per-trial total RMSEs ``rmse`` [deg] must lower the objective
     ``objective`` below the current settings' (``current_rmse``) to be kept, under ``rule``
     (``STEP_RULES``): 0 for ``"any_gain"``; for ``"one_se"`` the standard error of the mean per-trial
-    change: of ln(rmse / current) per dataset, the largest taken, for the log-ratio objective; of the
-    RMSE difference [deg] over all trials for ``"mean_rmse"`` (a group of one trial has none)."""
+    change: of ln(rmse / current) per dataset, the largest taken, for the worst dataset's objective; of the
+    mean over datasets of those means, √(Σ SE²) / D, for ``"mean_dataset_log_ratio"``; of the RMSE
+    difference [deg] over all trials for ``"mean_rmse"`` (a group of one trial has none)."""
     if rule == "any_gain":
         return 0.0
     if rule != "one_se":
@@ -117,6 +125,8 @@ def step_margin(rule: str, objective: str, rmse, current_rmse, datasets) -> floa
         change, groups = rmse - current_rmse, np.zeros(len(rmse), dtype=int)
     se = [float(np.std(change[ok & (groups == g)], ddof=1) / math.sqrt(n))
           for g in np.unique(groups[ok]) if (n := int(np.sum(ok & (groups == g)))) > 1]
+    if objective == "mean_dataset_log_ratio":  # the SE of a mean of independent per-dataset means
+        return math.sqrt(sum(v * v for v in se)) / len(np.unique(groups[ok])) if se else 0.0
     return max(se, default=0.0)
 
 
@@ -487,7 +497,9 @@ GAINS_FILE = "gains.json"
 _OBJECTIVE_TEXT = {
     "mean_rmse": "mean total RMSE [deg] over the trials (BROAD)",
     "worst_dataset_log_ratio": "worst dataset's mean ln(total RMSE / at learning off) per trial, + 1e-3 x the mean "
-                               "over datasets (BROAD's total RMSE)"}
+                               "over datasets (BROAD's total RMSE)",
+    "mean_dataset_log_ratio": "mean over datasets of each dataset's mean ln(total RMSE / at learning off) per "
+                              "trial, no dataset above learning off (BROAD's total RMSE)"}
 
 
 def save_gains(model_dir, settings: TogglingSettings, trials, history, use_mag: bool = True,

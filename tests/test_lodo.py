@@ -182,3 +182,26 @@ def test_leave_one_dataset_out_on_two_datasets(mini_index, tmp_path):
     assert "+0.0 % · 0/3/0" in first_all  # learned VQF vs core: three ties
     assert lodo_json(results)["first"]["vqf_core"][names[0]]["total"] == pytest.approx(
         results["first"]["vqf_core"][names[0]].errors["total"])
+
+
+def test_left_out_datasets_and_the_pretrained_model_train_with_the_pretrained_search(monkeypatch, tmp_path):
+    """``run.lodo`` (each dataset left out) and ``run.pretrained`` (every dataset) train with the same search, the
+    pretrained recipe's (``run.config.pretrained_config``): the check is of the model that ships. The training
+    is replaced by a stub that records its config and stops."""
+    import togglecf.run.lodo as lodo_module
+    import togglecf.run.pretrained as pretrained_module
+
+    class Seen(Exception):
+        pass
+
+    def stub(cfg, **kwargs):
+        raise Seen(cfg)
+    for module in (lodo_module, pretrained_module):
+        monkeypatch.setattr(module, "run_training", stub)
+    with pytest.raises(Seen) as left_out:
+        lodo_module._left_out(tmp_path / "a", [tmp_path / "b"], tmp_path / "m", None, False, {}, None)
+    with pytest.raises(Seen) as pretrained:
+        pretrained_module.train_pretrained_models([tmp_path / "a", tmp_path / "b"], tmp_path, verbose=False)
+    for seen in (left_out, pretrained):
+        search = VQFGainSearch.from_dict(seen.value.args[0]["gains"]["vqf"])
+        assert search.tau_acc == (3.0,) and search.objective == "mean_dataset_log_ratio"

@@ -16,7 +16,7 @@ from togglecf.filters import VQFCoreFilter
 from togglecf.filters.prediction import PredictionLayout
 from togglecf.filters.vqf_toggling import TAU_ACC_RANGE, VQFTogglingFilter, VQFTogglingSettings
 from togglecf.registry import VQF_TOGGLING, FilterSpec
-from togglecf.run.config import RELEARN_DEFAULTS, load_config, relearn_search
+from togglecf.run.config import PRETRAINED_DEFAULTS, RELEARN_DEFAULTS, load_config, pretrained_config, relearn_search
 from togglecf.run.train import run_training
 from togglecf.toggling import load_gains
 from togglecf.toggling.gains import VQFGainSearch
@@ -401,6 +401,29 @@ def test_search_offers_the_field_change_scale_in_9d_only_and_off_by_default():
     grid = VQFGainSearch.from_dict({"field_change_scale": [0.0, 10.0, 20.0]})
     assert [v for v, _ in dict(grid.candidates(start, use_mag=True))["field_change_scale"]] == [0.0, 10.0, 20.0]
     assert "field_change_scale" not in dict(grid.candidates(start, use_mag=False))
+
+
+def test_the_pretrained_recipe_keeps_tau_acc_and_takes_the_mean_over_datasets():
+    """``[gains.pretrained]`` (``pretrained_config``, the search of the model trained on several sensors): the
+    package's config and a config without the table keep τ_acc at the core's 3 s and take the mean-over-datasets
+    objective, every other coordinate as ``[gains.vqf]``, which itself is not changed; the table's own values win,
+    its unknown keys are refused with the table's name."""
+    cfg = load_config()
+    train = VQFGainSearch.from_dict(cfg["gains"]["vqf"])
+    pre = VQFGainSearch.from_dict(pretrained_config(cfg)["gains"]["vqf"])
+    assert PRETRAINED_DEFAULTS == {"tau_acc": (3.0,), "objective": "mean_dataset_log_ratio"}
+    assert pre.tau_acc == (3.0,) and pre.objective == "mean_dataset_log_ratio"
+    assert replace(pre, tau_acc=train.tau_acc, objective=train.objective) == train
+    assert train.tau_acc == (1.0, 2.0, 3.0, 5.0, 10.0) and train.objective == "worst_dataset_log_ratio"
+    assert VQFGainSearch.from_dict(cfg["gains"]["vqf"]) == train  # the copy left cfg as it was
+    bare = load_config({"gains": {"vqf": {"mag_disturbance_scale": [0.0, 20.0]}}})
+    bare_pre = VQFGainSearch.from_dict(pretrained_config(bare)["gains"]["vqf"])
+    assert bare_pre.tau_acc == (3.0,) and bare_pre.mag_disturbance_scale == (0.0, 20.0)
+    own = load_config({"gains": {"pretrained": {"tau_acc": [2.0, 3.0], "objective": "worst_dataset_log_ratio"}}})
+    own_pre = VQFGainSearch.from_dict(pretrained_config(own)["gains"]["vqf"])
+    assert own_pre.tau_acc == (2.0, 3.0) and own_pre.objective == "worst_dataset_log_ratio"
+    with pytest.raises(ValueError, match=r"unknown \[gains.pretrained\] setting\(s\) \['sigma_m'\]"):
+        load_config({"gains": {"pretrained": {"sigma_m": [1.0]}}})
 
 
 def test_relearning_searches_the_field_change_scale_and_training_does_not():

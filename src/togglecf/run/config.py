@@ -4,7 +4,8 @@ Training config (``togglecf train``, TOML; default ``togglecf/configs/default.to
 ``[run]`` (``core.config.RUN_DEFAULTS``), ``[labels]``, ``[features]``, ``[classifier]``,
 ``[regressor]``, ``[gains]``; unknown sections and keys are refused with their names. ``[gains.vqf]`` is the
 learned VQF's search (``VQFGainSearch``); ``[gains.relearn]`` the values ``togglecf train --from-pretrained``
-searches in place of ``[gains.vqf]``'s (``relearn_search``).
+searches in place of ``[gains.vqf]``'s (``relearn_search``); ``[gains.pretrained]`` those the pretrained recipe,
+trained on several sensors, searches in their place (``pretrained_config``).
 """
 from __future__ import annotations
 
@@ -15,18 +16,38 @@ from togglecf.learn.labels import LabelSettings
 from togglecf.learn.models import MotionClassifier, NoiseRegressor
 from togglecf.toggling.gains import MODES, GainSearch, VQFGainSearch
 
-__all__ = ["DEFAULT_CONFIG", "load_config", "SECTIONS", "GAIN_KEYS", "RELEARN_DEFAULTS", "relearn_search"]
+__all__ = ["DEFAULT_CONFIG", "load_config", "SECTIONS", "GAIN_KEYS", "RELEARN_DEFAULTS", "relearn_search",
+           "PRETRAINED_DEFAULTS", "pretrained_config"]
 
 DEFAULT_CONFIG = config_path("default.toml")
 SECTIONS = ("run", "labels", "features", "classifier", "regressor", "gains")
 #: keys of ``[gains]`` that are not the toggling CF's search grids: whether and for which modes (``toggling.gains.MODES``)
 #: gains are learned, ``vqf``, the sub-table of the VQF core's search (``VQFGainSearch``), and ``relearn``, what the
-#: re-learning on one sensor searches in its place (``relearn_search``)
-GAIN_KEYS = ("learn", "modes", "vqf", "relearn")
+#: re-learning on one sensor searches in its place (``relearn_search``), and ``pretrained``, what the pretrained recipe
+#: searches in its place (``pretrained_config``)
+GAIN_KEYS = ("learn", "modes", "vqf", "relearn", "pretrained")
 #: ``[gains.relearn]``'s values where a config has none: σ_f [µT], the scale of the learned VQF's back-off on the
 #: field's change (step 3b of ``filters.vqf_toggling``; 0: off), searched when re-learning on one sensor's recordings
 #: (a magnetic environment and magnetometer of its own), not when training on several (``[gains.vqf]``: off)
 RELEARN_DEFAULTS = {"field_change_scale": (0.0, 10.0, 20.0, 50.0)}
+
+
+#: ``[gains.pretrained]``'s values where a config has none: the pretrained recipe, trained on several sensors
+#: (``run.pretrained``, and ``run.lodo`` that checks it leaving each dataset out), keeps τ_acc at the core's 3 s in
+#: every state (a per-state τ_acc learned on some sensors did not travel to another, and a perfect motion classifier
+#: would gain nothing on any developer dataset: the headroom's true-labels rows) and takes a step where it lowers the
+#: mean over the training datasets with none of them above learning off (``gains`` objective
+#: ``mean_dataset_log_ratio``: the worst dataset's objective refused the heading back-off that helped two training
+#: sensors of three by more than the third's scatter)
+PRETRAINED_DEFAULTS = {"tau_acc": (3.0,), "objective": "mean_dataset_log_ratio"}
+
+
+def pretrained_config(cfg: dict) -> dict:
+    """The training config of the pretrained recipe from a loaded config ``cfg`` (``load_config``): a copy whose
+    ``[gains.vqf]`` has ``PRETRAINED_DEFAULTS`` and then each key of ``[gains.pretrained]`` in place."""
+    gains = cfg["gains"]
+    pretrained = check_keys(VQFGainSearch, dict(gains.get("pretrained", {})), "[gains.pretrained]")
+    return {**cfg, "gains": {**gains, "vqf": {**gains.get("vqf", {}), **PRETRAINED_DEFAULTS, **pretrained}}}
 
 
 def relearn_search(cfg: dict) -> VQFGainSearch:
@@ -51,6 +72,7 @@ def load_config(source=None) -> dict:
     GainSearch.from_dict({k: v for k, v in cfg["gains"].items() if k not in GAIN_KEYS})
     VQFGainSearch.from_dict(cfg["gains"].get("vqf", {}))
     relearn_search(cfg)  # [gains.relearn]'s keys are the VQF search's
+    VQFGainSearch.from_dict(pretrained_config(cfg)["gains"]["vqf"])  # and [gains.pretrained]'s
     bad_modes = sorted(set(cfg["gains"].get("modes", ())) - set(MODES))
     if bad_modes:
         raise ValueError(f"{what} [gains] modes: unknown {bad_modes}; known: {list(MODES)}")

@@ -1,8 +1,9 @@
 """Leave one dataset out: does the learning travel to a sensor, rate and lab it never saw?
 
 For each dataset present (a directory in BROAD's layout), the models and gains are trained on all
-the *other* datasets (``togglecf train``: models, then the gains on the out-of-fold predictions)
-and every trial of the dataset left out is scored:
+the *other* datasets (``togglecf train``: models, then the gains on the out-of-fold predictions; the learned
+VQF's with the pretrained recipe's search, ``run.config.pretrained_config``, as the model it checks) and every
+trial of the dataset left out is scored:
 
 * the learned filters (``registry.TRAINED``) with their models in the loop;
 * each learned filter's **core with learning off**: for the learned VQF the VQF core at VQF's
@@ -33,7 +34,7 @@ from togglecf.metrics.broad import trial_errors
 from togglecf.parallel.backend import LocalBackend, Task, run_tasks
 from togglecf.registry import TOGGLING, VQF_TOGGLING, FilterSpec
 from togglecf.report.study_report import TIE_DEG, paired_test
-from togglecf.run.config import load_config
+from togglecf.run.config import load_config, pretrained_config
 from togglecf.run.scoring import TrialResult, score_trial
 from togglecf.run.study import load_study_config
 from togglecf.run.sweep import grid_search
@@ -107,7 +108,8 @@ def _left_out(left: Path, train: list, model_dir: Path, config, verbose: bool, m
     follow_parent_logging(log_level)
     t0 = time.perf_counter()
     log.info(f"leave one dataset out: train on {', '.join(d.name for d in train)}; score {left.name}")
-    run_training(load_config(config), data_dir=[str(d) for d in train], out=model_dir, verbose=verbose)
+    run_training(pretrained_config(load_config(config)), data_dir=[str(d) for d in train], out=model_dir,
+                 verbose=verbose)
     index = DatasetIndex.from_dir(left)
     names = index.select(None)
     per = models_transfer(model_dir, index)

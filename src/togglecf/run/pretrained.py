@@ -23,7 +23,7 @@ from togglecf.core.io import atomic_write_text, file_sha256
 from togglecf.core.provenance import source_revision
 from togglecf.data.broad import DatasetIndex, open_index
 from togglecf.registry import VQF_TOGGLING
-from togglecf.run.config import load_config, relearn_search
+from togglecf.run.config import load_config, pretrained_config, relearn_search
 from togglecf.run.train import run_training
 from togglecf.learn.folds import trial_folds
 from togglecf.learn.portable import load_portable, save_portable
@@ -81,10 +81,11 @@ def train_pretrained(dirs, out_dir, lodo: dict | None = None, verbose: bool = Tr
 
 
 def train_pretrained_models(dirs, out_dir, verbose: bool = True) -> Path:
-    """The pretrained recipe's training (``togglecf train``, the default config, gain modes ``vqf_9d`` and
-    ``vqf_6d``) on every directory of ``dirs`` into ``out_dir/models``, which it returns: a task of its own
-    (``make run`` trains it beside the left-out datasets, whose results only its card needs)."""
-    cfg = load_config()
+    """The pretrained recipe's training (``togglecf train``, the default config with ``[gains.pretrained]``'s
+    search, ``run.config.pretrained_config``, gain modes ``vqf_9d`` and ``vqf_6d``) on every directory of ``dirs``
+    into ``out_dir/models``, which it returns: a task of its own (``make run`` trains it beside the left-out
+    datasets, whose results only its card needs)."""
+    cfg = pretrained_config(load_config())
     cfg["gains"]["modes"] = ["vqf_9d", "vqf_6d"]
     model_dir = Path(out_dir) / "models"
     run_training(cfg, data_dir=[str(d) for d in dirs], out=model_dir, verbose=verbose)
@@ -105,7 +106,7 @@ def write_pretrained(dirs, out_dir, lodo: dict | None = None) -> Path:
         rates = sorted({round(float(index.load(n).fs), 3) for n in names})
         datasets.append({"name": Path(d).name, "trials": len(names), "rates_hz": rates, "notice": dataset_notice(d)})
     metadata = {
-        "recipe": "togglecf train, the default config, gain modes vqf_9d and vqf_6d",
+        "recipe": "togglecf train, the default config with its [gains.pretrained] search, gain modes vqf_9d and vqf_6d",
         "togglecf": __version__, "seed": meta.get("seed"),
         "datasets": datasets, "classes": meta["classes"],
         "training_trials": len(meta["training_trials"]),

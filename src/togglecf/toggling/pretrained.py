@@ -54,8 +54,9 @@ def load_pretrained(path=None) -> PortableModel:
 
 
 class LearnedVQF:
-    """The pretrained learned VQF at ``rate`` [Hz] (9D, or 6D with ``use_mag=False``): the VQF core whose
-    time constants the shipped models set per sample (``filters.vqf_toggling``). ``update(gyr, acc, mag)``
+    """The pretrained learned VQF at ``rate`` [Hz] (9D, or 6D with ``use_mag=False``): the VQF core with the
+    shipped models in its loop (``filters.vqf_toggling``: per-state time constants, a heading back-off on the
+    predicted magnetic disturbance; the model card says which the shipped settings use). ``update(gyr, acc, mag)``
     returns the orientation ``(4,)``; ``update_batch`` returns a ``FilterOutput`` with ``.quat (N, 4)``
     and the diagnostics; ``get_state`` / ``set_state`` save and restore everything the running filter
     holds. Units: gyr rad/s, acc m/s², mag µT. ``model``: another portable file (``learn.portable``)

@@ -19,7 +19,8 @@ BENCHES = {
     "bench_filters": ([], ["madgwick 9D", "cf 6D", "vqf_core 9D", "ekf 9D"]),
     "bench_features": ([], ["features"]),
     "bench_toggling": ([], ["toggling, models in the loop", "toggling core, predictions given"]),
-    "bench_learned_vqf": ([], ["LearnedVQF / vqf_core", "models in the loop, learning on: τ_acc per state"]),
+    "bench_learned_vqf": ([], ["LearnedVQF / vqf_core", "models in the loop, learning on: τ_acc per state",
+                              "LearnedVQF as shipped (its learned settings)"]),
     "bench_dask": ([], ["dask, 1 worker process(es)", "mahony serial"]),
     "bench_cycles": (["--samples", "40"], ["VQF core 6D (tcf_vqf.c) -O2", "learned VQF 9D, pretrained model -O2"]),
 }

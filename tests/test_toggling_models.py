@@ -7,7 +7,7 @@ from togglecf.core import quaternion as quat
 from togglecf.features.windows import compute_features
 from togglecf.filters.toggling import TogglingFilter
 from togglecf.learn.compiled import CompiledModels
-from togglecf.toggling.inloop import ModelTogglingFilter
+from togglecf.toggling.inloop import ModelTogglingFilter, ModelVQFTogglingFilter
 from togglecf.learn.models import load_bundle
 
 #: time constants [s]: per sample (0.02, 0.002, 0.0005, 0.0002), (0.005, 0.001, 0.0003, 0.0001), γ 0.7 at 285.714 Hz
@@ -105,3 +105,31 @@ def test_magnetometer_trees_are_walked_exactly_when_the_filter_uses_them(bundle,
     ref.forest = models.forest  # every tree walked: the result must not change
     mag = t.mag if use_mag else None
     assert np.array_equal(f.update_batch(t.gyr, t.acc, mag).quat, ref.update_batch(t.gyr, t.acc, mag).quat)
+
+
+@pytest.mark.parametrize("per_state_tau", [False, True])
+def test_learned_vqf_walks_the_class_trees_only_where_its_per_state_values_differ(bundle, segment, per_state_tau):
+    """The learned VQF whose per-state values are all the core's (here with the heading back-off on, as the
+    pretrained recipe's model) gets nothing from the class probabilities: its loop walks only the η̂_m trees
+    (the class outputs keep their base margins, a constant prior) and its orientation is the one with every
+    tree walked within rounding: the blend Σ w_s ln τ of equal values is ln τ up to an ulp, exp() of it one ulp
+    off τ (the bound of test_pretrained's learning-off test, 1e-12). With τ_acc per state the class trees are
+    walked."""
+    t = segment.slice(0, 4000)
+    models = CompiledModels.from_bundle(bundle)
+    layout = models.layout
+    kw = dict(mag_disturbance_scale=10.0)
+    if per_state_tau:
+        kw["tau_acc_states"] = tuple(np.geomspace(1.5, 6.0, len(models.class_names)))
+    f = ModelVQFTogglingFilter(t.fs, models=models, **kw)
+    groups = set(np.unique(f.forest.tree_group).tolist())
+    assert (set(layout.outputs(layout.probabilities)) <= groups) == per_state_tau
+    assert not set(layout.outputs(layout.probabilities)) & groups or per_state_tau
+    assert set(layout.outputs(layout.eta_mag)) <= groups
+    ref = ModelVQFTogglingFilter(t.fs, models=models, **kw)
+    ref.forest = models.forest  # every tree walked
+    a, b = f.update_batch(t.gyr, t.acc, t.mag), ref.update_batch(t.gyr, t.acc, t.mag)
+    assert np.abs(a.quat - b.quat).max() <= (0.0 if per_state_tau else 1e-12)
+    p = a.diagnostics["p_" + models.class_names[0]]
+    held = p[np.isfinite(p)]
+    assert held.size and (np.ptp(held) > 0) == per_state_tau  # the prior is constant, the classifier's is not

@@ -254,6 +254,12 @@ class PredictionDrivenFilter(OrientationFilter):
         return PredictionLayout.of(len(self.settings.states))
 
     @property
+    def uses_class_probabilities(self) -> bool:
+        """Whether the class probabilities can change this filter's output (default True); the in-loop
+        models do not walk the classifier's trees of a filter that says no (``toggling.inloop``)."""
+        return True
+
+    @property
     def n_predictions(self) -> int:
         return self.layout.size
 

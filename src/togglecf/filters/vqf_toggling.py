@@ -186,11 +186,16 @@ class VQFTogglingSettings(VQFCoreSettings):
         and ``modulation_tau`` change nothing (every blend is the core's value) and the filter is the core
         with ``core_settings`` (within rounding of exp(ln τ)): ``LearnedVQF`` and the C export run the
         core alone."""
-        same = all(v == getattr(self, core) for core, per_state in _PER_STATE.items()
-                   for v in getattr(self, per_state))
         mag_terms = use_mag and (self.noise_weight_mag != 0.0 or self.mag_disturbance_scale != 0.0
                                  or self.field_change_scale != 0.0)
-        return same and self.noise_weight_acc == 0.0 and not mag_terms
+        return self.states_off() and self.noise_weight_acc == 0.0 and not mag_terms
+
+    def states_off(self) -> bool:
+        """True when every per-state value equals the core's (τ_acc, τ_mag, σ_motion, th_ω, th_a): the
+        blend of step 2 is then the core's value whatever the class probabilities (within rounding of
+        the sum of the weights), so the classifier changes nothing."""
+        return all(v == getattr(self, core) for core, per_state in _PER_STATE.items()
+                   for v in getattr(self, per_state))
 
     @property
     def core_settings(self) -> VQFCoreSettings:
@@ -435,6 +440,11 @@ class VQFTogglingFilter(PredictionDrivenFilter):
     def record(self):
         """The state as a named record (``VQFT_STATE``): a view, writes go to ``state``."""
         return record_of(self.state, self.state_dtype)
+
+    @property
+    def uses_class_probabilities(self) -> bool:
+        """False when every per-state value is the core's (``VQFTogglingSettings.states_off``)."""
+        return not self.settings.states_off()
 
     def reset(self):
         """The core's initial state (``reset_core_state``); the modulation starts at the core's own

@@ -291,9 +291,12 @@ class InLoopFilter:
 
     def __init__(self, filt, models: CompiledModels):
         s, layout = filt.settings, filt.layout
-        # η̂_m enters the noise removal (weight w_m) and the disturbance back-off (σ_m > 0), in 9D only
+        # η̂_m enters the noise removal (weight w_m) and the disturbance back-off (σ_m > 0), in 9D only; the class
+        # probabilities whatever a filter's per-state values make of them (none: the classifier's trees are not
+        # walked, its outputs stay at their base margins, a constant prior)
         mag_needed = filt.use_mag and (s.noise_weight_mag > 0.0 or s.mag_disturbance_scale > 0.0)
-        unused = ((layout.outputs(layout.eta_acc) if s.noise_weight_acc == 0.0 else [])
+        unused = ((layout.outputs(layout.probabilities) if not filt.uses_class_probabilities else [])
+                  + (layout.outputs(layout.eta_acc) if s.noise_weight_acc == 0.0 else [])
                   + (layout.outputs(layout.eta_mag) if not mag_needed else []))
         self.filter = filt
         self.predictor = InLoopPredictor(filt.fs, models, layout, unused)

@@ -5,7 +5,8 @@ emulator, not a measurement on the hardware (``togglecf.embedded.cycles``).
                                      [--clock-mhz 168] [--data DIR] [--out PATH]
 
 Each filter is exported as ``togglecf export`` writes it (the VQF core ``tcf_vqf.c`` 9D and 6D; the
-learned VQF ``tcf_vqf_toggling.c`` with the pretrained model (learning off: the core alone), with the
+learned VQF ``tcf_vqf_toggling.c`` with the pretrained model as shipped (its learned settings; the core alone
+where it learns nothing), with the
 pretrained model's trees and learning on (``bench_learned_vqf.learning_on_model``: its 240 class
 trees every 0.1 s, the size ``togglecf train --from-pretrained`` makes), and with a trained model
 directory's trees in the loop, in the default array layout and in the complete one

@@ -126,6 +126,13 @@ def part_runs(t, gyr, acc, mag, outs) -> dict:
     return {PART_MODELS: run_models, PART_STEP: run_step}
 
 
+def all_trees(f):
+    """``f`` walking every tree of its models, also those of outputs its settings never use: what the models
+    cost in the loop."""
+    f.forest = f.models.forest
+    return f
+
+
 def python_runs(t, gyr, acc, mag, tmp: Path) -> tuple[dict, dict, dict]:
     """The Python rows' callables (each from a fresh state), the outputs they write and their filters
     (``tmp``: a directory for the learning-off model file)."""
@@ -134,7 +141,7 @@ def python_runs(t, gyr, acc, mag, tmp: Path) -> tuple[dict, dict, dict]:
     off_file = portable_with(tmp / "learning_off.npz", learning_off(shipped), "learning off")
     filters = {OFF: LearnedVQF(t.fs, model=off_file), CORE: VQFCoreFilter(t.fs, shipped.core_settings),
                SHIPPED: LearnedVQF(t.fs),
-               LOOP_OFF: ModelVQFTogglingFilter(t.fs, learning_off(shipped), models=pm.models),
+               LOOP_OFF: all_trees(ModelVQFTogglingFilter(t.fs, learning_off(shipped), models=pm.models)),
                LOOP_TAU: ModelVQFTogglingFilter(t.fs, learning_on(shipped, False), models=pm.models),
                LOOP_MAG: ModelVQFTogglingFilter(t.fs, learning_on(shipped, True), models=pm.models)}
 

@@ -243,8 +243,8 @@ def main(argv=None) -> dict:
                   f"{len(shipped.runner.predictor.forest.roots)} trees walked")
     what = (f"Trial {t.name} ({n} samples at {t.fs:.1f} Hz), 9D, the shipped model "
             f"({len(load_pretrained().models.forest.roots)} trees; as shipped: {as_shipped}); learning on: τ_acc per "
-            f"state {LEARNED_TAU_ACC[0]:g} to {LEARNED_TAU_ACC[1]:g} s (+ σ_m {LEARNED_SIGMA_M:g} µT for the back-off "
-            "row); "
+            f"state {LEARNED_TAU_ACC[0]:g} to {LEARNED_TAU_ACC[1]:g} s (+ σ_m {LEARNED_SIGMA_M:g} µT for the "
+            "back-off row); "
             f"best of {repeats} interleaved runs after a warm-up. LearnedVQF against vqf_core: largest quaternion "
             f"difference {diff:.2g}. C rows: the harness's own timing of its update loop (gcc -O2, float32, "
             "best of as many runs), after the Python rows, against VQF's C++ timed between them (the machine's "

@@ -37,8 +37,8 @@ RELEARN_DEFAULTS = {"field_change_scale": (0.0, 10.0, 20.0, 50.0)}
 #: every state (a per-state τ_acc learned on some sensors did not travel to another, and a perfect motion classifier
 #: would gain nothing on any developer dataset: the headroom's true-labels rows) and takes a step where it lowers the
 #: mean over the training datasets with none of them above learning off (``gains`` objective
-#: ``mean_dataset_log_ratio``: the worst dataset's objective refused the heading back-off that helped two training
-#: sensors of three by more than the third's scatter)
+#: ``mean_dataset_log_ratio``: the worst dataset's objective refused the heading back-off on the predicted
+#: disturbance, which helped two training sensors beyond their scatter and the third only within its own)
 PRETRAINED_DEFAULTS = {"tau_acc": (3.0,), "objective": "mean_dataset_log_ratio"}
 
 

@@ -16,8 +16,9 @@ heading offset removed):
   the values for everyone.
 * ``"mean_dataset_log_ratio"``: the same per-dataset means, averaged over the datasets, and no step may leave a
   dataset's mean above 0 (worse than learning off: the value is then +inf). A change that helps some datasets
-  and leaves the others where learning off has them is kept, which the worst dataset's mean refuses (it must
-  help every dataset); no training dataset pays for another's gain. With one dataset it is its mean.
+  beyond the scatter and the others less, or not at all, can be kept, where the worst dataset's mean refuses it
+  (it must help every dataset beyond the scatter); no training dataset pays for another's gain. With one dataset
+  it is that dataset's mean.
 * ``"mean_rmse"``: the mean total RMSE over all trials (the trials with the largest errors weigh most).
 
 When a step is kept (``STEP_RULES``): ``"any_gain"`` keeps a candidate that lowers the objective at

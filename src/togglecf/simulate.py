@@ -21,11 +21,12 @@ __all__ = ["EARTH_MAG_ENU", "imu_from_orientation", "static_trajectory", "axis_s
 EARTH_MAG_ENU = 49.0 * np.array([0.0, np.cos(np.radians(67.0)), -np.sin(np.radians(67.0))])
 
 
-def imu_from_orientation(q, fs: float, *, name: str = "synthetic", gyro_noise: float = 0.0,
-                         acc_noise: float = 0.0, mag_noise: float = 0.0, gyro_bias=(0.0, 0.0, 0.0),
+def imu_from_orientation(q, fs: float, *, gyro_noise: float = 0.0, acc_noise: float = 0.0,
+                         mag_noise: float = 0.0, gyro_bias=(0.0, 0.0, 0.0),
                          lin_acc_earth=None, mag_disturbance_earth=None, mag_earth=EARTH_MAG_ENU,
                          seed: int = 0) -> Trial:
-    """IMU signals for orientations ``q (N, 4)`` at ``fs`` [Hz].
+    """IMU signals for orientations ``q (N, 4)`` at ``fs`` [Hz], as a ``Trial`` named ``"synthetic"`` (another
+    name: ``dataclasses.replace(trial, name=...)``).
 
     Args:
         gyro_noise: white-noise standard deviation of the gyro [rad/s].
@@ -62,7 +63,7 @@ def imu_from_orientation(q, fs: float, *, name: str = "synthetic", gyro_noise: f
     gyr = gyr + np.asarray(gyro_bias, float) + gyro_noise * rng.standard_normal((n, 3))
     acc = acc + acc_noise * rng.standard_normal((n, 3))
     mag = mag + mag_noise * rng.standard_normal((n, 3))
-    return Trial(name=name, fs=fs, gyr=gyr, acc=acc, mag=mag, opt_quat=q, opt_pos=np.zeros((n, 3)),
+    return Trial(name="synthetic", fs=fs, gyr=gyr, acc=acc, mag=mag, opt_quat=q, opt_pos=np.zeros((n, 3)),
                  movement=np.ones(n, bool))
 
 

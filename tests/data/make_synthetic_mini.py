@@ -105,10 +105,10 @@ def make_trial(name: str, spec: dict, seed: int):
         imu_acc += sim.taps(n, FS, times=spec["taps"], peak=10.0, freq_hz=60.0, decay_s=0.02, seed=seed + 2)
     mag = sim.mag_disturbance_intervals(n, FS, spec["mag"]) if spec["mag"] else None
     bias = sim.random_walk_bias(n, FS, sigma=1e-4, initial=spec["bias"], seed=seed + 3)
-    t = sim.imu_from_orientation(q, FS, name=name, gyro_noise=GYRO_NOISE, acc_noise=ACC_NOISE, mag_noise=MAG_NOISE,
+    t = sim.imu_from_orientation(q, FS, gyro_noise=GYRO_NOISE, acc_noise=ACC_NOISE, mag_noise=MAG_NOISE,
                                  gyro_bias=bias, lin_acc_earth=imu_acc, mag_disturbance_earth=mag, seed=seed + 4)
     movement = np.arange(n) >= int(round(REST_S * FS))
-    return replace(t, opt_pos=pos, movement=movement, groups=tuple(spec["groups"]))
+    return replace(t, name=name, opt_pos=pos, movement=movement, groups=tuple(spec["groups"]))
 
 
 def info_text(name: str, spec: dict, seed: int) -> str:

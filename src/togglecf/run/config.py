@@ -37,8 +37,9 @@ RELEARN_DEFAULTS = {"field_change_scale": (0.0, 10.0, 20.0, 50.0)}
 #: every state (a per-state τ_acc learned on some sensors did not travel to another, and a perfect motion classifier
 #: would gain nothing on any developer dataset: the headroom's true-labels rows) and takes a step where it lowers the
 #: mean over the training datasets with none of them above learning off (``gains`` objective
-#: ``mean_dataset_log_ratio``: the worst dataset's objective refused the heading back-off on the predicted
-#: disturbance, which helped two training sensors beyond their scatter and the third only within its own)
+#: ``mean_dataset_log_ratio``: with the worst dataset's objective, which keeps a step only where every training
+#: dataset gains beyond its scatter, the model learned nothing, while the heading back-off on the predicted
+#: disturbance, learned on two sensors, helped the third where it was BROAD or the Nexus 5)
 PRETRAINED_DEFAULTS = {"tau_acc": (3.0,), "objective": "mean_dataset_log_ratio"}
 
 

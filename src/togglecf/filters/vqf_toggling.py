@@ -312,6 +312,7 @@ def _follow(st, p):
         st.ln_tau_mag_now = lm
         st.tau_mag_now = math.exp(lm)
         st.k_mag_now = gain_from_tau(st.tau_mag_now, p.ts)
+        st.mod.k_mag = st.k_mag_now  # without a back-off, the gain in use (_heading_gain divides it)
 
 
 @njit(cache=True, inline="always")
@@ -390,10 +391,13 @@ def vqf_toggling_step(state, params, gyr, acc, mag, dt, pred, diag):
             st.k_mag_now = st.mod.k_mag  # modulate's gain_from_tau(tau_mag), before any back-off
     if p.modulation_gain < 1.0:
         _follow(st, p)
-    if p.modulation_gain < 1.0 or p.mag_disturbance_scale > 0.0 or p.field_change_scale > 0.0:
+    if p.mag_disturbance_scale > 0.0 or p.field_change_scale > 0.0:  # else modulate or _follow set k_mag
         _heading_gain(st, p, mag)
-    # step 4, the learned VQF's rule (filters.prediction): whenever η̂ is finite
-    _, a_d, m_d = remove_noise(layout, pred, acc, mag, p.noise_weight_acc, p.noise_weight_mag, True)
+    # step 4, the learned VQF's rule (filters.prediction): whenever η̂ is finite; with both weights 0 the
+    # sample as is (a − 0 η̂ = a), without the per-sample check, as the C export
+    a_d, m_d = (acc[0], acc[1], acc[2]), (mag[0], mag[1], mag[2])
+    if p.noise_weight_acc != 0.0 or p.noise_weight_mag != 0.0:
+        _, a_d, m_d = remove_noise(layout, pred, acc, mag, p.noise_weight_acc, p.noise_weight_mag, True)
     core_update(st, p, st.mod, gyr, a_d, m_d, dt, diag)  # step 5
     if p.field_change_scale > 0.0:  # step 3b for the next sample
         _field_change(st, p, m_d)

@@ -139,7 +139,8 @@ def run_inloop(step, state, params, samples, window, models, held, out):
     which names its step. Written for speed: a call per sample with many arguments, the arrays among
     them reference-counted, costs as much as the whole VQF core; the samples go to ``push_sample`` and
     the step as tuples and the step writes a scratch ``diag`` (not row views of the input arrays, each
-    reference-counted); ``params`` as from ``PredictionDrivenFilter.step_params``."""
+    reference-counted); the held prediction goes into its rows of ``out`` once a hop (``_hold_rows``), not
+    every sample; ``params`` as from ``PredictionDrivenFilter.step_params``."""
     L = window.ring.shape[0]
     hop = window.hop
     pred = held.pred
@@ -150,12 +151,15 @@ def run_inloop(step, state, params, samples, window, models, held, out):
     # division per sample)
     done = int(window.aux[0])
     next_end = L if done < L else L + ((done - L) // hop + 1) * hop
+    filled = 0
     for i in range(gyr.shape[0]):
         g = (gyr[i, 0], gyr[i, 1], gyr[i, 2])
         a = (acc[i, 0], acc[i, 1], acc[i, 2])
         m = (mag[i, 0], mag[i, 1], mag[i, 2])
         push_sample(window.ring, window.aux, window.params, window.last_src, g, a, m)
         if done + i + 1 == next_end:
+            _hold_rows(out, filled, i, pred, held.fallback[0])
+            filled = i
             next_end += hop
             hop_predict(window, models, held)
         for j in range(diag.shape[0]):
@@ -167,9 +171,16 @@ def run_inloop(step, state, params, samples, window, models, held, out):
         out.quat[i, 1] = state[1]
         out.quat[i, 2] = state[2]
         out.quat[i, 3] = state[3]
+    _hold_rows(out, filled, gyr.shape[0], pred, held.fallback[0])
+
+
+@njit(cache=True, inline="always")
+def _hold_rows(out, start, stop, pred, fallback):
+    """Rows ``start`` to ``stop`` − 1 of ``out.pred`` and ``out.fallback``: the prediction held over them."""
+    for i in range(start, stop):
         for j in range(pred.shape[0]):
             out.pred[i, j] = pred[j]
-        out.fallback[i] = held.fallback[0]
+        out.fallback[i] = fallback
 
 
 @njit(cache=True)

@@ -140,6 +140,23 @@ def test_same_model_same_bytes_and_numpy_reads_it(vqf_dir, portable, tmp_path):
     assert header["format"] == PORTABLE_FORMAT and set(header["gains"]) == {"vqf_9d", "vqf_6d"}
 
 
+def test_portable_header_is_strict_json_where_a_value_is_not_finite(vqf_dir, tmp_path):
+    """A re-learning's report can hold an objective of +inf (``mean_dataset_log_ratio`` with a dataset above
+    learning off) or NaN: the header stays strict JSON (no ``Infinity``/``NaN`` tokens, which JSON readers
+    outside Python refuse), those values null, the rest as given, and the model still loads."""
+    path = portable_from_model_dir(vqf_dir, tmp_path / "m.npz",
+                                   {"search": {"objective_pretrained": float("inf"), "objective_core": float("nan"),
+                                               "objective_search": -0.25}})
+    text = zipfile.ZipFile(path).read("header.json").decode()
+
+    def refuse(token):
+        raise ValueError(f"not strict JSON: {token}")
+    header = json.loads(text, parse_constant=refuse)
+    assert header["metadata"]["search"] == {"objective_pretrained": None, "objective_core": None,
+                                            "objective_search": -0.25}
+    assert load_portable(path).metadata["search"]["objective_search"] == -0.25
+
+
 def test_portable_refuses_another_format_with_what_to_do(portable, tmp_path):
     bad = tmp_path / "bad.npz"
     with zipfile.ZipFile(portable) as src, zipfile.ZipFile(bad, "w") as dst:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from togglecf.core.io import atomic_write_bytes
+from togglecf.core.io import atomic_write_bytes, to_jsonable
 from togglecf.features.windows import FEATURE_VERSION, FeatureSettings
 from togglecf.learn.compiled import CompiledModels
 from togglecf.learn.trees import FlatForest
@@ -47,7 +47,9 @@ class PortableModel:
 
 
 def save_portable(path, models: CompiledModels, gains: dict, metadata: dict) -> Path:
-    """Write ``models``, ``gains`` (mode -> settings dict) and ``metadata`` to ``path`` atomically."""
+    """Write ``models``, ``gains`` (mode -> settings dict) and ``metadata`` to ``path`` atomically. The header is
+    strict JSON: a value that is not finite (e.g. an objective of +inf in a re-learning's report) is written as
+    null (``core.io.to_jsonable``), so any JSON reader opens it."""
     f = models.forest
     header = {"format": PORTABLE_FORMAT, "feature_version": FEATURE_VERSION, "class_names": list(models.class_names),
               "feature_settings": asdict(models.feature_settings), "schema_hash": models.schema_hash,
@@ -57,7 +59,8 @@ def save_portable(path, models: CompiledModels, gains: dict, metadata: dict) -> 
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as z:
         z.writestr(zipfile.ZipInfo("header.json", _ZIP_TIME),
-                   json.dumps(header, sort_keys=True, indent=1, ensure_ascii=False).encode())
+                   json.dumps(to_jsonable(header), sort_keys=True, indent=1, ensure_ascii=False,
+                              allow_nan=False).encode())
         for name in sorted(arrays):
             one = io.BytesIO()
             np.lib.format.write_array(one, np.ascontiguousarray(arrays[name]), allow_pickle=False)

@@ -24,7 +24,11 @@ Rows, each as µs per sample and as a ratio to ``vqf.VQF.updateBatch`` (C++):
   timed between the C runs (its own row: a machine's speed can change between the two phases);
 * where the learning-on row's time goes: the models alone (features pushed every sample, trees walked
   every hop, no filter) and the filter step alone driven by that row's predictions (steps 1-5:
-  the followed modulation, the core).
+  the followed modulation, the core);
+* the same trial at a phone's rate, every ``LOW_RATE_FACTOR`` samples averaged (``run.transfer.decimate_trial``:
+  95.2 Hz for BROAD's 285.7 Hz), interleaved with the rows above: VQF, the core, ``LearnedVQF`` as shipped and
+  the τ_acc row, each against VQF at that rate, with the same goals. The models predict every 0.1 s at any rate
+  (their window and hop are in seconds), so a sample at a lower rate carries more of their cost.
 
 The outputs are checked too: ``LearnedVQF`` learning off against ``vqf_core`` (largest quaternion
 component difference: 0 when it runs the core alone). ``--quick``: the mini trial 24 (4000
@@ -50,6 +54,7 @@ from togglecf.features.streaming import push_sample
 from togglecf.filters.vqf_core import VQFCoreFilter
 from togglecf.filters.vqf_toggling import VQFTogglingFilter
 from togglecf.learn.portable import save_portable
+from togglecf.run.transfer import decimate_trial
 from togglecf.toggling.gains import mode_name
 from togglecf.toggling.inloop import ModelVQFTogglingFilter, hop_predict
 from togglecf.toggling.pretrained import PRETRAINED_FILE, LearnedVQF, load_pretrained, pretrained_settings
@@ -74,6 +79,10 @@ C_TAU = "C export (float32), learning on: τ_acc per state"
 C_TAU_COMPLETE = "C export (float32), learning on: τ_acc per state, trees in the complete layout"
 C_SHIPPED = "C export (float32), as shipped"
 VQF_C = "vqf (VQF.updateBatch, C++), timed between the C rows: their reference"
+#: the phone-rate rows: the trial every LOW_RATE_FACTOR samples averaged
+LOW_RATE_FACTOR = 3
+LOW_RATE = f", at a phone's rate (every {LOW_RATE_FACTOR} samples averaged)"
+LOW_VQF, LOW_CORE, LOW_SHIPPED, LOW_TAU = VQF + LOW_RATE, CORE + LOW_RATE, SHIPPED + LOW_RATE, LOOP_TAU + LOW_RATE
 
 
 def learning_off(settings):
@@ -154,6 +163,24 @@ def python_runs(t, gyr, acc, mag, tmp: Path) -> tuple[dict, dict, dict]:
     return {k: run(k, f) for k, f in filters.items()}, outs, filters
 
 
+def low_rate_runs(t) -> tuple[float, dict]:
+    """The phone-rate rows' callables: VQF, the core, ``LearnedVQF`` as shipped and the τ_acc row on trial ``t``
+    every ``LOW_RATE_FACTOR`` samples averaged. Returns (that rate [Hz], {row: callable})."""
+    arrays = decimate_trial(t, LOW_RATE_FACTOR)
+    fs = t.fs / LOW_RATE_FACTOR
+    gyr, acc, mag = (np.ascontiguousarray(arrays[k], np.float64) for k in ("imu_gyr", "imu_acc", "imu_mag"))
+    pm, shipped = load_pretrained(), pretrained_settings(True)
+    filters = {LOW_CORE: VQFCoreFilter(fs, shipped.core_settings), LOW_SHIPPED: LearnedVQF(fs),
+               LOW_TAU: ModelVQFTogglingFilter(fs, learning_on(shipped, False), models=pm.models)}
+
+    def run(f):
+        def go():
+            f.reset()
+            f.update_batch(gyr, acc, mag)
+        return go
+    return fs, {LOW_VQF: vqf_batch(fs, gyr, acc, mag), **{k: run(f) for k, f in filters.items()}}
+
+
 def prediction_rows(f, out) -> np.ndarray:
     """The prediction rows ``(N, S + 6)`` the in-loop filter ``f`` held, from its output's diagnostics."""
     return np.stack([out.diagnostics[k] for k in f.layout.names(f.models.class_names)], axis=1)
@@ -220,18 +247,20 @@ def main(argv=None) -> dict:
         runs, outs, filters = python_runs(t, gyr, acc, mag, Path(tmp))
         runs[LOOP_TAU]()
         outs[PREDS] = prediction_rows(filters[LOOP_TAU], outs[LOOP_TAU])  # they drive PART_STEP
-        runs = {VQF: vqf_batch(t.fs, gyr, acc, mag), **runs, **part_runs(t, gyr, acc, mag, outs)}
+        low_fs, low = low_rate_runs(t)
+        runs = {VQF: vqf_batch(t.fs, gyr, acc, mag), **runs, **part_runs(t, gyr, acc, mag, outs), **low}
         exes = {} if args.no_c else c_harnesses(Path(tmp), t.fs)
         times = interleaved_times(runs, repeats)
-        us = {k: 1e6 * min(v) / n for k, v in times.items()}
+        n_low = len(decimate_trial(t, LOW_RATE_FACTOR)["imu_gyr"])
+        us = {k: 1e6 * min(v) / (n_low if k in low else n) for k, v in times.items()}
         us_c = c_us(exes, t, gyr, acc, mag, repeats) if exes else {}
     ref, ref_c = us[VQF], us_c.pop(VQF, None)
-    ratios = {k: v / ref for k, v in us.items()}
+    ratios = {k: v / (us[LOW_VQF] if k in low else ref) for k, v in us.items()}
     ratios.update({k: v / ref_c for k, v in us_c.items()})
     ratios["LearnedVQF / vqf_core"] = us[OFF] / us[CORE]
     diff = float(np.abs(outs[OFF].quat - outs[CORE].quat).max())
-    rows = [{"filter": k, "us_per_sample": v, "ratio_to_vqf": ratios[k], "ratio_to_core": v / us[CORE]}
-            for k, v in us.items()]
+    rows = [{"filter": k, "us_per_sample": v, "ratio_to_vqf": ratios[k],
+             "ratio_to_core": v / us[LOW_CORE if k in low else CORE]} for k, v in us.items()]
     if us_c:
         rows.append({"filter": VQF_C, "us_per_sample": ref_c, "ratio_to_vqf": 1.0, "ratio_to_core": None})
     rows += [{"filter": k, "us_per_sample": v, "ratio_to_vqf": ratios[k], "ratio_to_core": None}
@@ -248,7 +277,9 @@ def main(argv=None) -> dict:
             f"best of {repeats} interleaved runs after a warm-up. LearnedVQF against vqf_core: largest quaternion "
             f"difference {diff:.2g}. C rows: the harness's own timing of its update loop (gcc -O2, float32, "
             "best of as many runs), after the Python rows, against VQF's C++ timed between them (the machine's "
-            "speed can change from one phase to the next)")
+            f"speed can change from one phase to the next). Rows at a phone's rate: the trial every "
+            f"{LOW_RATE_FACTOR} samples averaged ({low_fs:.1f} Hz, {n_low} samples), ratios against VQF and the "
+            "core at that rate")
     print(what)
     res = finish(NAME, args, rows, ["filter", "us_per_sample", "ratio_to_vqf", "ratio_to_core"],
                  "Learned VQF speed against the VQF core and VQF", [context_note(what, args)], ratios=ratios)
@@ -261,6 +292,11 @@ def main(argv=None) -> dict:
     shipped_ratio = ratios[SHIPPED]
     print(f"goal: LearnedVQF as shipped <= 1.2x VQF -> {shipped_ratio:.2f}x "
           f"({'met' if shipped_ratio <= 1.2 else 'NOT met'})")
+    for key, what in ((LOW_SHIPPED, "LearnedVQF as shipped"), (LOW_TAU, "learned VQF with models in the loop")):
+        lo, mid, hi = round_ratios(times, key, LOW_VQF)
+        print(f"goal: {what} <= 1.2x VQF at {low_fs:.1f} Hz -> {ratios[key]:.2f}x "
+              f"({'met' if ratios[key] <= 1.2 else 'NOT met'}; round by round {lo:.2f}x to {hi:.2f}x, median "
+              f"{mid:.2f}x)")
     for key, layout in ((C_TAU, "array"), (C_TAU_COMPLETE, "complete")):
         if key in ratios:
             print(f"goal: its C export with models in the loop ({layout} layout) <= 1.2x VQF -> {ratios[key]:.2f}x "

@@ -21,7 +21,8 @@ BENCHES = {
     "bench_toggling": ([], ["toggling, models in the loop", "toggling core, predictions given"]),
     "bench_learned_vqf": ([], ["LearnedVQF / vqf_core", "models in the loop, learning on: τ_acc per state",
                               "LearnedVQF as shipped (its learned settings)",
-                              "LearnedVQF as shipped (its learned settings), at a phone's rate (every 3 samples averaged)",
+                              "LearnedVQF as shipped (its learned settings), at a phone's rate (every 3 samples "
+                              "averaged)",
                               "models in the loop, learning on: τ_acc per state, at a phone's rate (every 3 samples "
                               "averaged)"]),
     "bench_dask": ([], ["dask, 1 worker process(es)", "mahony serial"]),

@@ -163,9 +163,9 @@ def python_runs(t, gyr, acc, mag, tmp: Path) -> tuple[dict, dict, dict]:
     return {k: run(k, f) for k, f in filters.items()}, outs, filters
 
 
-def low_rate_runs(t) -> tuple[float, dict]:
+def low_rate_runs(t) -> tuple[float, int, dict]:
     """The phone-rate rows' callables: VQF, the core, ``LearnedVQF`` as shipped and the τ_acc row on trial ``t``
-    every ``LOW_RATE_FACTOR`` samples averaged. Returns (that rate [Hz], {row: callable})."""
+    every ``LOW_RATE_FACTOR`` samples averaged. Returns (that rate [Hz], its number of samples, {row: callable})."""
     arrays = decimate_trial(t, LOW_RATE_FACTOR)
     fs = t.fs / LOW_RATE_FACTOR
     gyr, acc, mag = (np.ascontiguousarray(arrays[k], np.float64) for k in ("imu_gyr", "imu_acc", "imu_mag"))
@@ -178,7 +178,7 @@ def low_rate_runs(t) -> tuple[float, dict]:
             f.reset()
             f.update_batch(gyr, acc, mag)
         return go
-    return fs, {LOW_VQF: vqf_batch(fs, gyr, acc, mag), **{k: run(f) for k, f in filters.items()}}
+    return fs, len(gyr), {LOW_VQF: vqf_batch(fs, gyr, acc, mag), **{k: run(f) for k, f in filters.items()}}
 
 
 def prediction_rows(f, out) -> np.ndarray:
@@ -247,11 +247,10 @@ def main(argv=None) -> dict:
         runs, outs, filters = python_runs(t, gyr, acc, mag, Path(tmp))
         runs[LOOP_TAU]()
         outs[PREDS] = prediction_rows(filters[LOOP_TAU], outs[LOOP_TAU])  # they drive PART_STEP
-        low_fs, low = low_rate_runs(t)
+        low_fs, n_low, low = low_rate_runs(t)
         runs = {VQF: vqf_batch(t.fs, gyr, acc, mag), **runs, **part_runs(t, gyr, acc, mag, outs), **low}
         exes = {} if args.no_c else c_harnesses(Path(tmp), t.fs)
         times = interleaved_times(runs, repeats)
-        n_low = len(decimate_trial(t, LOW_RATE_FACTOR)["imu_gyr"])
         us = {k: 1e6 * min(v) / (n_low if k in low else n) for k, v in times.items()}
         us_c = c_us(exes, t, gyr, acc, mag, repeats) if exes else {}
     ref, ref_c = us[VQF], us_c.pop(VQF, None)
@@ -292,9 +291,9 @@ def main(argv=None) -> dict:
     shipped_ratio = ratios[SHIPPED]
     print(f"goal: LearnedVQF as shipped <= 1.2x VQF -> {shipped_ratio:.2f}x "
           f"({'met' if shipped_ratio <= 1.2 else 'NOT met'})")
-    for key, what in ((LOW_SHIPPED, "LearnedVQF as shipped"), (LOW_TAU, "learned VQF with models in the loop")):
+    for key, label in ((LOW_SHIPPED, "LearnedVQF as shipped"), (LOW_TAU, "learned VQF with models in the loop")):
         lo, mid, hi = round_ratios(times, key, LOW_VQF)
-        print(f"goal: {what} <= 1.2x VQF at {low_fs:.1f} Hz -> {ratios[key]:.2f}x "
+        print(f"goal: {label} <= 1.2x VQF at {low_fs:.1f} Hz -> {ratios[key]:.2f}x "
               f"({'met' if ratios[key] <= 1.2 else 'NOT met'}; round by round {lo:.2f}x to {hi:.2f}x, median "
               f"{mid:.2f}x)")
     for key, layout in ((C_TAU, "array"), (C_TAU_COMPLETE, "complete")):

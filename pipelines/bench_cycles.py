@@ -16,7 +16,10 @@ linked bare-metal with newlib's libm, and run one update per sample on the first
 BROAD trial in the emulator (unicorn), which counts the executed instructions; the cycles are
 priced with the Cortex-M4 TRM's instruction timings at zero wait states (``CycleModel``; a range
 for the branch refill P = 1-3). Each row also checks the emulated build against the host build of
-the same export on the same samples (largest angle between their orientations).
+the same export on the same samples (largest angle between their orientations). Each filter also runs,
+exported at that rate, on the same samples every 3 averaged (``bench_learned_vqf.LOW_RATE_FACTOR``: 95.2 Hz, a
+phone's rate): its mean cycles there and their share of that sample period. The learned filters' models predict
+every 0.1 s at any rate, so at a lower rate a sample carries more of their cycles.
 
 Full run: trial 21, 2000 samples, -O2 and -Os, table in ``reports/bench/bench_cycles.md``/``.csv``;
 without ``--models`` a small model directory (10 + 10 trees of depth 4, small gain grids) is trained
@@ -33,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_common import add_common_args, data_dir, finish
-from bench_learned_vqf import LEARNED_TAU_ACC, learning_on_model
+from bench_learned_vqf import LEARNED_TAU_ACC, LOW_RATE_FACTOR, learning_on_model
 
 from togglecf.core import quaternion as quat
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
@@ -51,7 +54,17 @@ QUICK_TRIAL = "07"
 TRAIN_TRIALS = "02,07,21,24"
 COLUMNS = ["filter", "opt", "samples", "instructions_mean", "instructions_max", "cycles_mean", "cycles_max",
            "cycles_range_mean", "cycles_range_max", "us_mean", "load_285.7_mean_pct", "load_285.7_max_pct",
-           "load_100_mean_pct", "ratio_to_vqf", "max_angle_deg"]
+           "ratio_to_vqf", "max_angle_deg"]
+
+
+def low_rate_columns(fs_low: float) -> list:
+    """The columns of the low-rate run at ``fs_low`` [Hz]: its mean cycles a sample and their share of its period."""
+    return [f"cycles_mean_{fs_low:.1f}", f"load_{fs_low:.1f}_mean_pct"]
+
+
+def table_columns(fs_low: float) -> list:
+    """The table's columns: ``COLUMNS`` with ``low_rate_columns(fs_low)`` before the last two."""
+    return COLUMNS[:-2] + low_rate_columns(fs_low) + COLUMNS[-2:]
 
 
 def small_models(data, out) -> Path:
@@ -96,8 +109,9 @@ def filter_specs(models, learning_on_file=None):
     return specs
 
 
-def measure_row(spec, opt, tmp: Path, g, a, m, fs, clock_hz) -> dict:
-    """One filter at one optimisation level: the table row (without ``ratio_to_vqf``)."""
+def measure_row(spec, opt, tmp: Path, g, a, m, fs, clock_hz, low) -> dict:
+    """One filter at one optimisation level: the table row (without ``ratio_to_vqf``); ``low``: the samples
+    at the low rate and that rate, ``(g, a, m, fs)``, run by an export at that rate."""
     label, export, sources, includes, use_mag, host = spec
     out_dir = tmp / f"{len(list(tmp.iterdir()))}"
     export(out_dir, fs)
@@ -106,7 +120,13 @@ def measure_row(spec, opt, tmp: Path, g, a, m, fs, clock_hz) -> dict:
     if meas.unknown:
         print(f"{label} {opt}: instructions priced 1 cycle by default: {sorted(meas.unknown)}", file=sys.stderr)
     ref = host(out_dir, g, a, mag, fs)
-    s = cycles.summarize(meas, clock_hz)
+    s = cycles.summarize(meas, clock_hz, rates=(285.7,))
+    g_low, a_low, m_low, fs_low = low
+    low_dir = tmp / f"{len(list(tmp.iterdir()))}"
+    export(low_dir, fs_low)
+    s_low = cycles.summarize(cycles.measure_filter(low_dir, sources, g_low, a_low, m_low if use_mag else None, fs_low,
+                                                   opt=opt, includes=includes), clock_hz, rates=(fs_low,))
+    cycles_low, load_low = low_rate_columns(fs_low)
     print(f"{label} {opt}: {s['cycles_mean']:.0f} cycles/sample mean, {s['cycles_max']} max", flush=True)
     angle = float(np.nanmax(np.degrees(quat.angle_between(meas.quat, ref))))
     return {"filter": label, "opt": opt, "samples": s["samples"], "instructions_mean": round(s["instructions_mean"]),
@@ -116,7 +136,8 @@ def measure_row(spec, opt, tmp: Path, g, a, m, fs, clock_hz) -> dict:
             "cycles_range_max": f"{s['cycles_low_max']}-{s['cycles_high_max']}", "us_mean": f"{s['us_mean']:.1f}",
             "load_285.7_mean_pct": f"{100 * s['load_285.7_mean']:.2f}",
             "load_285.7_max_pct": f"{100 * s['load_285.7_max']:.2f}",
-            "load_100_mean_pct": f"{100 * s['load_100_mean']:.2f}", "max_angle_deg": f"{angle:.1e}",
+            cycles_low: round(s_low["cycles_mean"]), load_low: f"{100 * s_low[f'load_{fs_low:g}_mean']:.2f}",
+            "max_angle_deg": f"{angle:.1e}",
             "cycles_mean_exact": s["cycles_mean"], "per_function": meas.per_function}
 
 
@@ -144,8 +165,12 @@ def notes(t, n, start, clock_mhz, models, args) -> list:
             f"{cycles.CycleModel().describe()}. cycles_range: the taken branches priced with P = 1 and P = 3. "
             f"Samples {start}-{start + n - 1} of BROAD trial {t.name} at {t.fs:.1f} Hz; mean and max over them (with "
             "models in the loop the max is a sample where the trees run: every hop once the first window is "
-            f"full). us_mean and load_*: at a {clock_mhz:g} MHz core clock, the share of a 285.7 Hz or 100 Hz "
-            "sample period one update takes. ratio_to_vqf: cycles_mean ÷ the VQF core 9D's at "
+            f"full). us_mean and load_285.7: at a {clock_mhz:g} MHz core clock, the share of a 285.7 Hz sample period "
+            f"one update takes. cycles_mean_{t.fs / LOW_RATE_FACTOR:.1f} and load_{t.fs / LOW_RATE_FACTOR:.1f}: the "
+            f"same samples every {LOW_RATE_FACTOR} averaged ({n // LOW_RATE_FACTOR} samples), the filter exported at "
+            f"that rate: its mean cycles a sample there (a window end every 0.1 s, so every "
+            f"{round(0.1 * t.fs / LOW_RATE_FACTOR)} samples) and their share of that period. ratio_to_vqf: "
+            "cycles_mean ÷ the VQF core 9D's at "
             "the same -O level. max_angle_deg: the emulated build against the host build of the same export on "
             f"the same samples.{model}" + (" (quick mode: mini data, not a measurement to quote)" if args.quick
                                            else "")]
@@ -171,6 +196,9 @@ def main(argv=None) -> dict:
     n = min(args.samples or (200 if args.quick else 2000), t.n_samples - args.start)
     opts = args.opt or (["-O2"] if args.quick else ["-O2", "-Os"])
     g, a, m = (x[args.start:args.start + n] for x in (t.gyr, t.acc, t.mag))
+    n_low = n // LOW_RATE_FACTOR
+    low = (*(x[:n_low * LOW_RATE_FACTOR].reshape(n_low, LOW_RATE_FACTOR, 3).mean(axis=1) for x in (g, a, m)),
+           t.fs / LOW_RATE_FACTOR)  # as run.transfer.decimate_trial: block means
     rows, ratios = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         models = args.models or (None if args.quick else str(small_models(data, Path(tmp) / "models")))
@@ -179,7 +207,7 @@ def main(argv=None) -> dict:
         work.mkdir()
         specs = filter_specs(models, on_file)
         for opt in opts:
-            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz) for spec in specs]
+            block = [measure_row(spec, opt, work, g, a, m, t.fs, 1e6 * args.clock_mhz, low) for spec in specs]
             vqf_cycles = block[0]["cycles_mean_exact"]  # the VQF core 9D, first of filter_specs
             for r in block:
                 key = f"{r['filter']} {opt}"
@@ -192,7 +220,7 @@ def main(argv=None) -> dict:
         print(where)
         for r in rows:
             del r["per_function"]
-        return finish(NAME, args, rows, COLUMNS, "Cycles per sample of the C filters on a Cortex-M4F (estimate)",
+        return finish(NAME, args, rows, table_columns(low[3]), "Cycles per sample of the C filters on a Cortex-M4F (estimate)",
                       [*notes(t, n, args.start, args.clock_mhz, models, args), where], digits=4, ratios=ratios)
 
 

@@ -42,6 +42,7 @@ from togglecf.core import quaternion as quat
 from togglecf.data.broad import DatasetIndex, resolve_data_dir
 from togglecf.embedded import cfilter, cvqf, cvqf_toggling, cycles
 from togglecf.run.config import load_config
+from togglecf.run.transfer import decimate_trial
 from togglecf.run.train import run_training
 from togglecf.toggling.pretrained import PRETRAINED_FILE
 
@@ -196,9 +197,9 @@ def main(argv=None) -> dict:
     n = min(args.samples or (200 if args.quick else 2000), t.n_samples - args.start)
     opts = args.opt or (["-O2"] if args.quick else ["-O2", "-Os"])
     g, a, m = (x[args.start:args.start + n] for x in (t.gyr, t.acc, t.mag))
-    n_low = n // LOW_RATE_FACTOR
-    low = (*(x[:n_low * LOW_RATE_FACTOR].reshape(n_low, LOW_RATE_FACTOR, 3).mean(axis=1) for x in (g, a, m)),
-           t.fs / LOW_RATE_FACTOR)  # as run.transfer.decimate_trial: block means
+    first, n_low = args.start // LOW_RATE_FACTOR, n // LOW_RATE_FACTOR
+    decimated = decimate_trial(t, LOW_RATE_FACTOR)  # block means, as the study's rate check
+    low = (*(decimated[k][first:first + n_low] for k in ("imu_gyr", "imu_acc", "imu_mag")), t.fs / LOW_RATE_FACTOR)
     rows, ratios = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         models = args.models or (None if args.quick else str(small_models(data, Path(tmp) / "models")))
